@@ -1,0 +1,1 @@
+"""The flight app: vehicle link, state machine, safety, flight log."""

@@ -1,0 +1,226 @@
+"""The configuration schema: one typed, validated object built from YAML files.
+
+``load_config()`` reads ``config/default.yaml`` (which includes the per-topic files:
+airframe, camera, guidance, ...), then any further files the user names (later
+files win, key by key), then ``--set section.key=value`` overrides.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field, ValidationError, model_validator
+from scipy.spatial.transform import Rotation
+
+from companion.app.config import AppConfig, LinkConfig, LogConfig, SafetyConfig
+from companion.config_perception import PerceptionConfig
+from companion.configbase import (
+    ConfigError,
+    Deg,
+    Hertz,
+    Kilograms,
+    Number,
+    Section,
+    deep_merge,
+    format_validation_error,
+    parse_override,
+    read_yaml,
+)
+from companion.sim.config import SimConfig
+
+G = 9.81  # m/s^2, the paper's |g|
+
+
+class AirframeConfig(Section):
+    """What the controller needs to know about the vehicle (x500-like by default)."""
+
+    name: str = "x500"
+    mass: Kilograms = Field(2.0, gt=0.05, le=50.0, description="kg")
+    hover_thrust: Number = Field(
+        0.5, gt=0.05, lt=0.95, description="normalised thrust that hovers (PX4 MPC_THR_HOVER)"
+    )
+    thrust_to_weight: Number = Field(2.0, gt=1.05, le=10.0, description="max collective thrust / weight")
+    thrust_min: Number = Field(
+        0.1, gt=0.0, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls)"
+    )
+
+    @property
+    def f_max(self) -> float:
+        """Largest mass-normalised thrust [m/s^2] the setpoint can ask for (thrust <= 1 and <= T/W)."""
+        return G * min(self.thrust_to_weight, 1.0 / self.hover_thrust)
+
+    @property
+    def f_min(self) -> float:
+        """Smallest mass-normalised thrust [m/s^2]: the one thrust_min maps to."""
+        return G * self.thrust_min / self.hover_thrust
+
+
+class MountConfig(Section):
+    """Camera-to-body rotation as intrinsic roll/pitch/yaw of the camera relative to body FRD (deg).
+
+    All zero: the camera looks along body x (forward), image x to the right, image y down.
+    Positive pitch tilts the camera up.
+    """
+
+    roll: Deg = Field(0.0, ge=-180.0, le=180.0)
+    pitch: Deg = Field(0.0, ge=-90.0, le=90.0)
+    yaw: Deg = Field(0.0, ge=-180.0, le=180.0)
+
+
+class CameraConfig(Section):
+    width: int = Field(640, ge=16, le=8192, description="px")
+    height: int = Field(480, ge=16, le=8192, description="px")
+    half_fov: Deg = Field(33.5, gt=1.0, lt=89.0, description="horizontal half angle of view, deg")
+    fx: float | None = Field(None, gt=0.0, description="px; default from half_fov")
+    fy: float | None = Field(None, gt=0.0, description="px; default = fx")
+    cx: float | None = Field(None, description="px; default = width/2")
+    cy: float | None = Field(None, description="px; default = height/2")
+    distortion: list[float] = Field(default_factory=list, max_length=14, description="OpenCV k1,k2,p1,p2[,k3..]")
+    rate: Hertz = Field(30.0, gt=0.5, le=1000.0, description="frame rate, Hz")
+    mount: MountConfig = MountConfig()
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraConfig:
+        if len(self.distortion) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError(f"distortion must have 0, 4, 5, 8, 12 or 14 coefficients, got {len(self.distortion)}")
+        if any(not math.isfinite(d) for d in self.distortion):
+            raise ValueError("distortion coefficients must be finite")
+        return self
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 (the usual name of the intrinsic matrix)
+        fx = self.fx if self.fx is not None else (self.width / 2.0) / math.tan(math.radians(self.half_fov))
+        fy = self.fy if self.fy is not None else fx
+        cx = self.cx if self.cx is not None else self.width / 2.0
+        cy = self.cy if self.cy is not None else self.height / 2.0
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist(self) -> np.ndarray:
+        return np.asarray(self.distortion, dtype=float)
+
+    @property
+    def R_body_cam(self) -> np.ndarray:  # noqa: N802
+        """Rotation camera (OpenCV: x right, y down, z forward) -> body FRD."""
+        # Zero mount: cam z (forward) -> body x, cam x (right) -> body y, cam y (down) -> body z.
+        base = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+        mount = Rotation.from_euler("ZYX", [self.mount.yaw, self.mount.pitch, self.mount.roll], degrees=True)
+        return mount.as_matrix() @ base
+
+
+class GuidanceConfig(Section):
+    """PN law and closed-form solver (paper eq:meth_pn_guidance_law and the optimum below it)."""
+
+    k_pn: Number = Field(2.10, gt=0.0, le=20.0, description="navigation constant k_PN")
+    gamma_bar: Deg = Field(21.05, gt=0.5, lt=89.0, description="bound on LOS-to-optical-axis angle, deg")
+    v_rel_bar: Number = Field(15.0, gt=0.0, le=200.0, description="over-estimate of the relative speed, m/s")
+
+
+class LosFilterConfig(Section):
+    """First-order low-pass on the world-frame unit LOS before the LOS rate is differenced."""
+
+    cutoff: Hertz = Field(6.0, gt=0.0, le=1000.0, description="cut-off frequency, Hz (high = no filtering)")
+    max_rate: Number = Field(
+        3.0, gt=0.0, le=100.0, description="LOS rates above this (rad/s) are a jump: frame rejected"
+    )
+    max_dt: Number = Field(0.5, gt=0.0, le=10.0, description="s; a gap longer than this restarts the filter")
+
+
+class Config(Section):
+    airframe: AirframeConfig = AirframeConfig()
+    camera: CameraConfig = CameraConfig()
+    guidance: GuidanceConfig = GuidanceConfig()
+    los_filter: LosFilterConfig = LosFilterConfig()
+    perception: PerceptionConfig = PerceptionConfig()
+    link: LinkConfig = LinkConfig()
+    safety: SafetyConfig = SafetyConfig()
+    app: AppConfig = AppConfig()
+    log: LogConfig = LogConfig()
+    sim: SimConfig = SimConfig()
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> Config:
+        # The controller keeps the LOS within gamma_bar of body x; a tilted camera eats into that margin.
+        misalign = math.degrees(math.acos(np.clip(self.camera.R_body_cam[:, 2] @ np.array([1.0, 0, 0]), -1, 1)))
+        if misalign >= self.guidance.gamma_bar:
+            raise ValueError(
+                f"camera.mount tilts the optical axis {misalign:.1f} deg off body x, "
+                f">= guidance.gamma_bar {self.guidance.gamma_bar} deg: the FOV bound cannot be kept"
+            )
+        if self.airframe.f_min >= G:
+            raise ValueError("airframe.thrust_min is at or above hover thrust")
+        return self
+
+
+def default_config_dir() -> Path:
+    env = os.environ.get("COMPANION_CONFIG_DIR")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parent.parent / "config"
+
+
+def _load_with_includes(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    path = path.resolve()
+    if path in seen:
+        raise ConfigError(f"{path}: include loop ({' -> '.join(str(p) for p in (*seen, path))})")
+    data = read_yaml(path)
+    includes = data.pop("include", [])
+    if isinstance(includes, str):
+        includes = [includes]
+    if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
+        raise ConfigError(f"{path}: include: expected a list of file names (got {includes!r})")
+    merged: dict[str, Any] = {}
+    for inc in includes:
+        merged = deep_merge(merged, _load_with_includes(path.parent / inc, (*seen, path)))
+    return deep_merge(merged, data)
+
+
+def _validate_one(path: Path, data: dict[str, Any]) -> None:
+    """Validate one file's content alone, so an error names the file that holds the bad value."""
+    try:
+        Config.model_validate(data)
+    except ValidationError as e:
+        # Cross-section checks may fail only once files are merged; blame the file only for field errors.
+        if e.errors()[0]["loc"]:
+            raise ConfigError(format_validation_error(e, str(path))) from None
+
+
+def load_config(
+    files: Sequence[str | Path] = (),
+    overrides: Iterable[str] = (),
+    *,
+    base: str | Path | None = None,
+) -> Config:
+    """Build the Config: base file (default config/default.yaml) + files + ``section.key=value`` overrides."""
+    base_path = Path(base) if base is not None else default_config_dir() / "default.yaml"
+    sources: list[tuple[str, dict[str, Any]]] = []
+    for p in (base_path, *map(Path, files)):
+        data = _load_with_includes(p)
+        _validate_one(p, data)
+        sources.append((str(p), data))
+    merged: dict[str, Any] = {}
+    for _, data in sources:
+        merged = deep_merge(merged, data)
+    for ov in overrides:
+        one = parse_override(ov)
+        try:
+            Config.model_validate(deep_merge({}, one))
+        except ValidationError as e:
+            if e.errors()[0]["loc"]:
+                raise ConfigError(format_validation_error(e, f"--set {ov}")) from None
+        merged = deep_merge(merged, one)
+    try:
+        return Config.model_validate(merged)
+    except ValidationError as e:
+        names = ", ".join(s for s, _ in sources)
+        raise ConfigError(format_validation_error(e, names)) from None
+
+
+def config_as_dict(cfg: Config) -> dict[str, Any]:
+    """Plain data (canonical units) for logs and result files."""
+    return cfg.model_dump(mode="json")

@@ -1,0 +1,80 @@
+"""The one boundary between the paper's frames and PX4's.
+
+Paper / internal: world ENU (x east, y north, z up; g = [0, 0, -9.81]),
+body FLU (x forward = camera optical axis, y left, z up = thrust axis).
+PX4 / MAVSDK: world NED, body FRD, Euler angles in degrees (ZYX: yaw, pitch, roll;
+positive pitch = nose up), quaternions scalar-first (w, x, y, z).
+scipy's Rotation is scalar-last (x, y, z, w); every quaternion in this code base is
+scalar-last unless its name says ``wxyz``.
+
+A rotation ``R_a_b`` maps vectors from frame b to frame a (``v_a = R_a_b @ v_b``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# ENU <-> NED: swap x and y, negate z. Self-inverse.
+P_NED_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+# FLU <-> FRD: negate y and z. Self-inverse.
+F_FRD_FLU = np.diag([1.0, -1.0, -1.0])
+
+
+def enu_to_ned(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v, dtype=float) @ P_NED_ENU.T
+
+
+def ned_to_enu(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v, dtype=float) @ P_NED_ENU.T
+
+
+def flu_to_frd(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v, dtype=float) @ F_FRD_FLU.T
+
+
+def frd_to_flu(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v, dtype=float) @ F_FRD_FLU.T
+
+
+def R_ned_frd_from_enu_flu(R_enu_flu: np.ndarray) -> np.ndarray:  # noqa: N802, N803
+    """Body-to-world rotation, re-expressed from ENU/FLU to NED/FRD."""
+    return P_NED_ENU @ R_enu_flu @ F_FRD_FLU
+
+
+def R_enu_flu_from_ned_frd(R_ned_frd: np.ndarray) -> np.ndarray:  # noqa: N802, N803
+    """Body-to-world rotation, re-expressed from NED/FRD to ENU/FLU."""
+    return P_NED_ENU @ R_ned_frd @ F_FRD_FLU
+
+
+def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:  # noqa: N803
+    """(roll, pitch, yaw) in degrees, ZYX convention, from a body FRD -> world NED rotation.
+
+    Closed form (the same as scipy's ``as_euler('ZYX')`` away from gimbal lock) because this is on
+    the 30 Hz hot path and scipy's object construction costs tens of microseconds.
+    """
+    r20 = min(1.0, max(-1.0, float(R_ned_frd[2, 0])))
+    pitch = -math.asin(r20)
+    roll = math.atan2(float(R_ned_frd[2, 1]), float(R_ned_frd[2, 2]))
+    yaw = math.atan2(float(R_ned_frd[1, 0]), float(R_ned_frd[0, 0]))
+    return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
+
+
+def R_from_euler_ned_deg(roll: float, pitch: float, yaw: float) -> np.ndarray:  # noqa: N802
+    """Body FRD -> world NED rotation from (roll, pitch, yaw) degrees, ZYX."""
+    return Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).as_matrix()
+
+
+def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:  # noqa: N803
+    """Scalar-first quaternion (MAVSDK / MAVLink order) of a rotation matrix, w >= 0."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return -q if q[0] < 0 else q
+
+
+def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:  # noqa: N802
+    """Rotation matrix of a scalar-first quaternion (normalised here)."""
+    w, x, y, z = (float(c) for c in q_wxyz)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()

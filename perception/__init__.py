@@ -1,0 +1,1 @@
+"""Perception: camera sources, detector, tracker, bounding box -> line of sight."""

@@ -1,0 +1,33 @@
+"""Data passed from perception to the controller."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class BoundingBox:
+    """An axis-aligned box in pixels (image x right, y down), centre + size, with its frame time."""
+
+    cx: float
+    cy: float
+    w: float
+    h: float
+    confidence: float = 1.0
+    t: float = 0.0  # capture time of the frame it came from, s (monotonic clock of the source)
+
+    def is_valid(self, width: int, height: int) -> bool:
+        """Finite, positive size, centre inside the image: anything else is garbage from a detector."""
+        vals = (self.cx, self.cy, self.w, self.h, self.confidence)
+        if not all(math.isfinite(v) for v in vals):
+            return False
+        return self.w > 0 and self.h > 0 and 0.0 <= self.cx <= width and 0.0 <= self.cy <= height
+
+    @property
+    def xyxy(self) -> tuple[float, float, float, float]:
+        return (self.cx - self.w / 2, self.cy - self.h / 2, self.cx + self.w / 2, self.cy + self.h / 2)
+
+    @classmethod
+    def from_xyxy(cls, x0: float, y0: float, x1: float, y1: float, confidence: float = 1.0, t: float = 0.0):
+        return cls((x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0, confidence, t)
