@@ -1,0 +1,256 @@
+"""Quadrotor rigid-body dynamics of the paper's eq:meth_quadrotor_dynamics, x500-like.
+
+World ENU, body FLU (z = thrust axis), quaternions xyzw (body -> world), as in companion/frames.py.
+Input: commanded attitude + normalised collective thrust (what PX4's offboard attitude setpoint
+gives). Inside: Brescianini's attitude law ``omega_c = 2/tau sgn(q_e0) q_e(1:3)``, a first-order
+body-rate response ``tau_omega`` (stands in for PX4's rate PID), a first-order thrust lag, thrust
+limits, linear + quadratic drag on the airspeed, wind, and a flat ground at z = 0.
+
+The integrator is on the simulator's hot path (>= 200 Hz, >= 200x real time), so it works on plain
+Python floats; numpy/scipy only appear at the API boundary.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+G = 9.81  # m/s^2, the paper's |g|
+
+
+@dataclass(frozen=True)
+class QuadParams:
+    """Physical parameters of the simulated vehicle.
+
+    Drag (paper's f_aero, acting against the airspeed v_air = v - wind) in newtons:
+    ``f_aero = (drag_lin + drag_quad * |v_air|) * v_air``. With the defaults (0.2 N s/m,
+    0.032 N s^2/m^2, 2 kg) level flight at PX4's default 45 deg tilt limit tops out at ~22 m/s, and
+    at 60 deg (full thrust, T/W = 2) at ~28 m/s.
+    """
+
+    mass: float = 2.0  # kg
+    hover_thrust: float = 0.5  # normalised thrust that hovers (the vehicle's true MPC_THR_HOVER)
+    thrust_to_weight: float = 2.0  # max collective thrust / weight
+    tau_omega: float = 0.04  # s, body-rate first-order response
+    tau_att: float = 0.15  # s, attitude loop: omega_c = 2/tau * sgn(q_e0) * q_e(1:3)
+    tau_thrust: float = 0.03  # s, collective thrust first-order lag
+    drag_lin: float = 0.2  # N / (m/s)
+    drag_quad: float = 0.032  # N / (m/s)^2
+    max_rate: float = math.radians(220.0)  # rad/s, per-axis body-rate limit (PX4 MC_*RATE_MAX-like)
+    max_touchdown_speed: float = 1.0  # m/s; descending faster at z = 0 is a ground contact
+    max_step: float = 1.0 / 200.0  # s; step() subdivides longer dt so integration stays >= 200 Hz
+
+    @property
+    def f_max(self) -> float:
+        """Largest mass-normalised thrust, m/s^2."""
+        return self.thrust_to_weight * G
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> QuadParams:
+        """From a Config: true mass/hover/T-W from ``sim.quad`` when set there, else ``airframe``."""
+        af, q = cfg.airframe, cfg.sim.quad
+        return cls(
+            mass=q.mass if q.mass is not None else af.mass,
+            hover_thrust=q.hover_thrust if q.hover_thrust is not None else af.hover_thrust,
+            thrust_to_weight=q.thrust_to_weight if q.thrust_to_weight is not None else af.thrust_to_weight,
+            tau_omega=q.tau_omega,
+            tau_att=q.tau_att,
+            tau_thrust=q.tau_thrust,
+            drag_lin=q.drag_lin,
+            drag_quad=q.drag_quad,
+            max_rate=math.radians(q.max_rate),
+            max_touchdown_speed=q.max_touchdown_speed,
+            max_step=1.0 / cfg.sim.rate,
+        )
+
+
+def _zeros() -> np.ndarray:
+    return np.zeros(3)
+
+
+def _level() -> np.ndarray:
+    return np.array([0.0, 0.0, 0.0, 1.0])
+
+
+@dataclass
+class QuadState:
+    t: float = 0.0  # s
+    p: np.ndarray = field(default_factory=_zeros)  # ENU, m
+    v: np.ndarray = field(default_factory=_zeros)  # ENU, m/s
+    q: np.ndarray = field(default_factory=_level)  # xyzw, body FLU -> world ENU
+    omega: np.ndarray = field(default_factory=_zeros)  # body FLU, rad/s
+    f_th: float = 0.0  # current mass-normalised thrust, m/s^2
+    on_ground: bool = True
+    ground_contact: bool = False  # latched: touched the ground faster than max_touchdown_speed
+
+
+def _qmul(a: tuple, b: tuple) -> tuple:
+    """Hamilton product of xyzw quaternions (tuples of floats)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
+def _rot(q: tuple, v: tuple) -> tuple:
+    """Rotate v by unit quaternion q (xyzw): R(q) v."""
+    x, y, z, w = q
+    vx, vy, vz = v
+    # v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z)
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return (
+        vx + w * tx + (y * tz - z * ty),
+        vy + w * ty + (z * tx - x * tz),
+        vz + w * tz + (x * ty - y * tx),
+    )
+
+
+def _rot_inv(q: tuple, v: tuple) -> tuple:
+    x, y, z, w = q
+    return _rot((-x, -y, -z, w), v)
+
+
+class Quadrotor:
+    """Integrates eq:meth_quadrotor_dynamics. ``state`` is refreshed after every ``step``."""
+
+    def __init__(self, params: QuadParams, state: QuadState | None = None):
+        self.params = params
+        self.state = state if state is not None else QuadState()
+
+    @property
+    def state(self) -> QuadState:
+        return self._state
+
+    @state.setter
+    def state(self, s: QuadState) -> None:
+        """Assigning a state (e.g. a scenario's initial condition) re-initialises the integrator."""
+        self._state = replace(s, p=np.array(s.p, dtype=float), v=np.array(s.v, dtype=float),
+                              q=np.array(s.q, dtype=float), omega=np.array(s.omega, dtype=float))
+        self._load(self._state)
+
+    # -- float-level copy of the state (hot path) ---------------------------------------------------
+    def _load(self, s: QuadState) -> None:
+        self._t = float(s.t)
+        self._p = [float(c) for c in s.p]
+        self._v = [float(c) for c in s.v]
+        q = np.asarray(s.q, dtype=float)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+            raise ValueError(f"QuadState.q: expected a 4-element xyzw quaternion (got {s.q})")
+        q = q / np.linalg.norm(q)
+        self._q = tuple(float(c) for c in q)
+        self._w = [float(c) for c in s.omega]
+        self._f = float(s.f_th)
+        self._on_ground = bool(s.on_ground)
+        self._contact = bool(s.ground_contact)
+        self._a = (0.0, 0.0, 0.0)  # last true acceleration (world), for the accelerometer
+
+    def _publish(self) -> QuadState:
+        self._state = QuadState(
+            t=self._t,
+            p=np.array(self._p),
+            v=np.array(self._v),
+            q=np.array(self._q),
+            omega=np.array(self._w),
+            f_th=self._f,
+            on_ground=self._on_ground,
+            ground_contact=self._contact,
+        )
+        return self._state
+
+    def step(
+        self, dt: float, q_cmd: np.ndarray, thrust_norm: float, wind_enu: np.ndarray | None = None
+    ) -> QuadState:
+        """Advance by dt seconds holding the command (zero-order hold, as PX4 holds a setpoint)."""
+        if not dt > 0.0:
+            raise ValueError(f"Quadrotor.step: dt must be > 0 (got {dt})")
+        p = self.params
+        qc = tuple(float(c) for c in q_cmd)
+        nrm = math.sqrt(sum(c * c for c in qc))
+        if not (nrm > 1e-9 and math.isfinite(nrm)):
+            raise ValueError(f"Quadrotor.step: q_cmd is not a quaternion (got {q_cmd})")
+        qc = (qc[0] / nrm, qc[1] / nrm, qc[2] / nrm, qc[3] / nrm)
+        thr = min(max(float(thrust_norm), 0.0), 1.0)
+        f_cmd = min(thr * G / p.hover_thrust, p.f_max)
+        wind = (0.0, 0.0, 0.0) if wind_enu is None else tuple(float(c) for c in wind_enu)
+        n = max(1, math.ceil(dt / p.max_step - 1e-9))
+        h = dt / n
+        a_w = 1.0 - math.exp(-h / p.tau_omega)
+        a_f = 1.0 - math.exp(-h / p.tau_thrust)
+        k_att = 2.0 / p.tau_att
+        wmax = p.max_rate
+        for _ in range(n):
+            self._substep(h, qc, f_cmd, wind, a_w, a_f, k_att, wmax)
+        return self._publish()
+
+    def _substep(self, h, qc, f_cmd, wind, a_w, a_f, k_att, wmax) -> None:
+        p = self.params
+        q = self._q
+        # Attitude controller (Brescianini): q_e = q^-1 * q_c, omega_c = 2/tau sgn(q_e0) q_e(1:3).
+        ex, ey, ez, ew = _qmul((-q[0], -q[1], -q[2], q[3]), qc)
+        s = k_att if ew >= 0.0 else -k_att
+        w = self._w
+        for i, e in enumerate((ex, ey, ez)):
+            wc = min(max(s * e, -wmax), wmax)
+            w[i] += (wc - w[i]) * a_w  # exact discretisation of the first-order rate response
+        # Thrust lag.
+        self._f += (f_cmd - self._f) * a_f
+        # Translational dynamics: a = R (f e_z) - f_aero / m + g.
+        v = self._v
+        vax, vay, vaz = v[0] - wind[0], v[1] - wind[1], v[2] - wind[2]
+        speed = math.sqrt(vax * vax + vay * vay + vaz * vaz)
+        k_d = (p.drag_lin + p.drag_quad * speed) / p.mass
+        tx, ty, tz = _rot(q, (0.0, 0.0, self._f))
+        ax = tx - k_d * vax
+        ay = ty - k_d * vay
+        az = tz - k_d * vaz - G
+        pos = self._p
+        if self._on_ground and az <= 0.0:
+            # Resting on the ground: the normal force cancels everything (legs don't slide).
+            v[0] = v[1] = v[2] = 0.0
+            self._a = (0.0, 0.0, 0.0)
+        else:
+            self._on_ground = False
+            # Semi-implicit Euler: velocity first, then position with the new velocity.
+            v[0] += ax * h
+            v[1] += ay * h
+            v[2] += az * h
+            pos[0] += v[0] * h
+            pos[1] += v[1] * h
+            pos[2] += v[2] * h
+            self._a = (ax, ay, az)
+            if pos[2] <= 0.0:
+                if -v[2] > p.max_touchdown_speed:
+                    self._contact = True
+                pos[2] = 0.0
+                v[0] = v[1] = v[2] = 0.0
+                self._on_ground = True
+                self._a = (0.0, 0.0, 0.0)
+        # Attitude kinematics: q <- q * exp(omega h / 2), exact for constant omega over the step.
+        wx, wy, wz = w
+        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if wn > 1e-12:
+            half = 0.5 * wn * h
+            sh = math.sin(half) / wn
+            dq = (wx * sh, wy * sh, wz * sh, math.cos(half))
+            q = _qmul(q, dq)
+            qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+            self._q = (q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn)
+        self._t += h
+
+    def specific_force_body(self) -> np.ndarray:
+        """Accelerometer reading without noise (FLU, m/s^2): R^T (a - g) = (thrust - drag) / m, body."""
+        a = self._a
+        return np.array(_rot_inv(self._q, (a[0], a[1], a[2] + G)))
+
+    def acceleration_world(self) -> np.ndarray:
+        """True acceleration of the last substep, ENU m/s^2 (for scoring and tests)."""
+        return np.array(self._a)
