@@ -24,7 +24,9 @@ from companion.configbase import (
     Deg,
     Hertz,
     Kilograms,
+    MetersPerSecond,
     Number,
+    Seconds,
     Section,
     deep_merge,
     format_validation_error,
@@ -93,7 +95,7 @@ class CameraConfig(Section):
         return self
 
     @property
-    def K(self) -> np.ndarray:  # noqa: N802 (the usual name of the intrinsic matrix)
+    def K(self) -> np.ndarray:
         fx = self.fx if self.fx is not None else (self.width / 2.0) / math.tan(math.radians(self.half_fov))
         fy = self.fy if self.fy is not None else fx
         cx = self.cx if self.cx is not None else self.width / 2.0
@@ -105,7 +107,7 @@ class CameraConfig(Section):
         return np.asarray(self.distortion, dtype=float)
 
     @property
-    def R_body_cam(self) -> np.ndarray:  # noqa: N802
+    def R_body_cam(self) -> np.ndarray:
         """Rotation camera (OpenCV: x right, y down, z forward) -> body FRD."""
         # Zero mount: cam z (forward) -> body x, cam x (right) -> body y, cam y (down) -> body z.
         base = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -118,7 +120,7 @@ class GuidanceConfig(Section):
 
     k_pn: Number = Field(2.10, gt=0.0, le=20.0, description="navigation constant k_PN")
     gamma_bar: Deg = Field(21.05, gt=0.5, lt=89.0, description="bound on LOS-to-optical-axis angle, deg")
-    v_rel_bar: Number = Field(15.0, gt=0.0, le=200.0, description="over-estimate of the relative speed, m/s")
+    v_rel_bar: MetersPerSecond = Field(15.0, gt=0.0, le=200.0, description="over-estimate of the relative speed, m/s")
 
 
 class LosFilterConfig(Section):
@@ -128,7 +130,7 @@ class LosFilterConfig(Section):
     max_rate: Number = Field(
         3.0, gt=0.0, le=100.0, description="LOS rates above this (rad/s) are a jump: frame rejected"
     )
-    max_dt: Number = Field(0.5, gt=0.0, le=10.0, description="s; a gap longer than this restarts the filter")
+    max_dt: Seconds = Field(0.5, gt=0.0, le=10.0, description="s; a gap longer than this restarts the filter")
 
 
 class Config(Section):
@@ -224,3 +226,19 @@ def load_config(
 def config_as_dict(cfg: Config) -> dict[str, Any]:
     """Plain data (canonical units) for logs and result files."""
     return cfg.model_dump(mode="json")
+
+
+def add_config_arguments(parser: Any) -> None:
+    """The config options every command shares."""
+    parser.add_argument(
+        "--config", "-c", action="append", default=[], metavar="FILE",
+        help="YAML overlay on top of config/default.yaml (repeatable; later files win)",
+    )
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override one value, e.g. --set guidance.k_pn=2.5 or --set sim.delay='100 ms'",
+    )
+
+
+def config_from_args(args: Any) -> Config:
+    return load_config(getattr(args, "config", []), getattr(args, "overrides", []))

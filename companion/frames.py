@@ -39,17 +39,17 @@ def frd_to_flu(v: np.ndarray) -> np.ndarray:
     return np.asarray(v, dtype=float) @ F_FRD_FLU.T
 
 
-def R_ned_frd_from_enu_flu(R_enu_flu: np.ndarray) -> np.ndarray:  # noqa: N802, N803
+def R_ned_frd_from_enu_flu(R_enu_flu: np.ndarray) -> np.ndarray:
     """Body-to-world rotation, re-expressed from ENU/FLU to NED/FRD."""
     return P_NED_ENU @ R_enu_flu @ F_FRD_FLU
 
 
-def R_enu_flu_from_ned_frd(R_ned_frd: np.ndarray) -> np.ndarray:  # noqa: N802, N803
+def R_enu_flu_from_ned_frd(R_ned_frd: np.ndarray) -> np.ndarray:
     """Body-to-world rotation, re-expressed from NED/FRD to ENU/FLU."""
     return P_NED_ENU @ R_ned_frd @ F_FRD_FLU
 
 
-def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:  # noqa: N803
+def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) in degrees, ZYX convention, from a body FRD -> world NED rotation.
 
     Closed form (the same as scipy's ``as_euler('ZYX')`` away from gimbal lock) because this is on
@@ -62,19 +62,31 @@ def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:  
     return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
 
 
-def R_from_euler_ned_deg(roll: float, pitch: float, yaw: float) -> np.ndarray:  # noqa: N802
+def R_from_euler_ned_deg(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Body FRD -> world NED rotation from (roll, pitch, yaw) degrees, ZYX."""
     return Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).as_matrix()
 
 
-def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:  # noqa: N803
+def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
     """Scalar-first quaternion (MAVSDK / MAVLink order) of a rotation matrix, w >= 0."""
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     q = np.array([w, x, y, z])
     return -q if q[0] < 0 else q
 
 
-def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:  # noqa: N802
-    """Rotation matrix of a scalar-first quaternion (normalised here)."""
+def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a scalar-first quaternion (normalised here).
+
+    Closed form rather than scipy: it runs once per camera frame in the controller, and
+    building a Rotation costs more than the whole guidance solve. Tested against scipy.
+    """
     w, x, y, z = (float(c) for c in q_wxyz)
-    return Rotation.from_quat([x, y, z, w]).as_matrix()
+    n = w * w + x * x + y * y + z * z
+    if not (n > 1e-12 and math.isfinite(n)):
+        raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
+    s = 2.0 / n
+    return np.array([
+        [1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
+        [s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w)],
+        [s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y)],
+    ])

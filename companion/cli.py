@@ -1,0 +1,51 @@
+"""``companion`` command line: one sub-command per job, each registered by its own module."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from companion.configbase import ConfigError
+
+# Each module has ``register(subparsers)`` that adds its sub-command(s) and sets ``func``.
+COMMAND_MODULES = (
+    "companion.bench",
+    "companion.sim.cli",
+    "companion.evaluation",
+    "companion.replay",
+    "companion.app.main",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="companion",
+        description="PN-informed PX4 companion app: fly through moving gates from a monocular camera and the IMU.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name == name:  # that job is not built yet
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ConfigError as e:
+        print(f"companion: config error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("companion: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

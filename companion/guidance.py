@@ -1,0 +1,249 @@
+"""PN-informed guidance: the paper's section IV in pure numpy (no I/O, no state, no asyncio).
+
+Frames: world W is ENU-like with z up and ``g = [0, 0, -G]``; body B is FLU (x = optical
+axis, z = thrust axis). Thrust ``f_th`` is mass-normalised (m/s^2) throughout, as in the
+paper's simplified problem. Names follow the paper's symbols:
+
+=====================================  ==========================================
+paper                                   here
+=====================================  ==========================================
+lambda_dot = f_est arccos(l . l_prev)   :func:`los_rate` -> ``lambda_dot``
+k_l = l x l_prev,  n = l x k_l          :func:`los_rate` -> ``k_l``, ``n``
+eq:meth_pn_guidance_law (a_n)           :func:`pn_demand`
+eq:meth_rotation_pn_world (R_PN^W)      :func:`pn_frame`
+eq:meth_optimization_problem_roll_pitch :func:`roll_pitch`
+f_th*, phi*, theta* (closed form)       :func:`solve`
+saturation of infeasible demands        :func:`demand_scale`
+R_B^W = R_PN^W R_y(phi) R_x(theta)      :func:`solve` -> ``R_W_B``
+MAVSDK setpoint (NED/FRD, deg, 0..1)    :func:`to_setpoint`
+=====================================  ==========================================
+
+Saturation rule (the paper leaves infeasible demands open). With ``t = s a_n^PN - g^PN``
+restricted to the PN y-z plane (the thrust components normal to the LOS that the demand
+fixes), a demand is feasible when some thrust ``f`` satisfies
+``max(f_min, |t|) <= f <= min(f_max, t_z / cos(gamma_bar))``, i.e. when
+(a) ``t_z >= f_min cos(gamma_bar)`` (thrust can point up enough and stay >= f_min within the FOV),
+(b) ``|t| <= f_max`` and (c) ``|t_y| <= t_z tan(gamma_bar)`` (the FOV cone). The feasible
+``t`` form a convex set, so the feasible scales ``s`` form an interval; we take the largest
+``s`` in [0, 1]: the normal demand keeps its direction and is scaled down just enough.
+If even ``s = 0`` is infeasible (LOS steeper than the FOV bound allows with f_min, or an
+airframe too weak to hold the LOS), the vehicle points its optical axis along the LOS
+(phi = theta = 0) with ``f = clip(t_z, f_min, f_max)``: the FOV bound holds exactly and
+the thrust stays in its limits.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.frames import F_FRD_FLU, P_NED_ENU, euler_ned_deg_from_R, quat_wxyz_from_R
+
+G = 9.81
+g_W = np.array([0.0, 0.0, -G])
+
+_EPS = 1e-12
+
+
+@dataclass(frozen=True, slots=True)
+class GuidanceParams:
+    """Everything the solver needs. Angles in radians, thrusts mass-normalised (m/s^2)."""
+
+    k_pn: float
+    v_rel_bar: float
+    gamma_bar: float
+    f_max: float
+    f_min: float
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.gamma_bar < math.pi / 2):
+            raise ValueError(f"gamma_bar must be in (0, pi/2) rad, got {self.gamma_bar}")
+        if not (0.0 < self.f_min < self.f_max):
+            raise ValueError(f"need 0 < f_min < f_max, got f_min={self.f_min}, f_max={self.f_max}")
+
+
+@dataclass(frozen=True, slots=True)
+class LosRate:
+    lambda_dot: float  # rad/s, >= 0
+    k_l: np.ndarray  # l x l_prev (not normalised, as in the paper)
+    n: np.ndarray  # unit normal direction of the PN acceleration; zero when lambda_dot == 0
+
+
+@dataclass(frozen=True, slots=True)
+class ThrustAttitude:
+    f_th: float  # mass-normalised thrust, m/s^2
+    phi: float  # pitch about PN y, rad
+    theta: float  # roll about PN x, rad
+    R_W_B: np.ndarray  # commanded attitude, body FLU -> world
+    demand_scale: float  # s in [0, 1]: 1 = PN demand met exactly
+    fallback: bool  # True when even s = 0 was infeasible (optical axis on the LOS)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    # np.cross costs ~10 us on 3-vectors; this is on the 30 Hz path.
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def los_rate(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> LosRate:  # noqa: E741
+    """Inertial LOS rate from two consecutive world-frame unit LOS vectors, ``dt`` apart.
+
+    ``lambda_dot = arccos(l . l_prev) / dt`` (the paper's ``f_est = 1/dt``), computed as
+    ``atan2(|l x l_prev|, l . l_prev)`` which is exact for small angles where arccos is not.
+    """
+    zero = np.zeros(3)
+    if l_prev is None or not (dt > 0.0) or not math.isfinite(dt):
+        return LosRate(0.0, zero, zero)
+    k_l = _cross(l, l_prev)
+    s = math.sqrt(float(k_l @ k_l))
+    if s < _EPS:
+        return LosRate(0.0, k_l, zero)
+    angle = math.atan2(s, float(l @ l_prev))
+    n = _cross(l, k_l) / s  # |l x k_l| = |k_l| because k_l is normal to the unit vector l
+    return LosRate(angle / dt, k_l, n)
+
+
+def pn_demand(lambda_dot: float, n: np.ndarray, k_pn: float, v_rel_bar: float) -> np.ndarray:
+    """eq:meth_pn_guidance_law: ``a_n = k_PN * v_rel_bar * lambda_dot * n``."""
+    return (k_pn * v_rel_bar * lambda_dot) * n
+
+
+def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # noqa: E741
+    """eq:meth_rotation_pn_world: ``R_PN^W = [l, e_z x l, l x (e_z x l)]`` with unit columns.
+
+    Singular when the LOS is vertical (``e_z x l = 0``): then the y axis is taken from
+    ``y_ref`` (default world y) made normal to ``l``, so the frame stays orthonormal.
+    """
+    y = np.array([-l[1], l[0], 0.0])  # e_z x l
+    ny = math.hypot(y[0], y[1])
+    if ny > 1e-9:
+        y /= ny
+    else:
+        ref = np.array([0.0, 1.0, 0.0]) if y_ref is None else np.asarray(y_ref, dtype=float)
+        y = ref - (ref @ l) * l
+        ny = math.sqrt(float(y @ y))
+        if ny < 1e-9:  # y_ref parallel to l: any normal will do
+            y = np.array([1.0, 0.0, 0.0]) - l[0] * l
+            ny = math.sqrt(float(y @ y))
+        y /= ny
+    z = _cross(l, y)
+    return np.column_stack((l, y, z))
+
+
+def roll_pitch(f_th: float, t_y: float, t_z: float) -> tuple[float, float]:
+    """eq:meth_optimization_problem_roll_pitch for thrust components ``t = (t_y, t_z)`` normal to the LOS.
+
+    ``t_y = n_y a_n - g_y^PN`` and ``t_z = n_z a_n - g_z^PN`` (the paper has ``g_y^PN = 0``).
+    Returns (theta, phi). Arguments are clipped to [-1, 1] against rounding only: callers
+    pass feasible inputs.
+    """
+    theta = math.asin(max(-1.0, min(1.0, -t_y / f_th)))
+    c = math.sqrt(max(f_th * f_th - t_y * t_y, 0.0))
+    phi = math.acos(max(-1.0, min(1.0, t_z / c))) if c > _EPS else 0.0
+    return theta, phi
+
+
+def _max_scale_linear(c0: float, c1: float) -> float:
+    """Largest s >= 0 with c0 + c1 s >= 0 (given c0 >= 0)."""
+    return math.inf if c1 >= 0.0 else c0 / -c1
+
+
+def demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidanceParams) -> float | None:
+    """Largest s in [0, 1] for which the demand ``s * (a_y, a_z)`` is feasible; None if s = 0 is not.
+
+    See the module docstring for the constraints (a), (b), (c).
+    """
+    cg, tg = math.cos(p.gamma_bar), math.tan(p.gamma_bar)
+    tz_min = p.f_min * cg
+    # Linear constraints c0 + c1 s >= 0, with t_y = s a_y - g_y and t_z = s a_z - g_z.
+    lin = (
+        (-g_z - tz_min, a_z),  # (a)
+        (-g_z * tg + g_y, a_z * tg - a_y),  # (c) t_z tan - t_y >= 0
+        (-g_z * tg - g_y, a_z * tg + a_y),  # (c) t_z tan + t_y >= 0
+    )
+    # (b) |s A - G|^2 <= f_max^2  <=>  qa s^2 + qb s + qc <= 0
+    qa = a_y * a_y + a_z * a_z
+    qb = -2.0 * (a_y * g_y + a_z * g_z)
+    qc = g_y * g_y + g_z * g_z - p.f_max * p.f_max
+    tol = 1e-12 * (1.0 + p.f_max * p.f_max)
+    if any(c0 < -1e-12 * (1.0 + abs(c0)) for c0, _ in lin) or qc > tol:
+        return None
+    s = 1.0
+    for c0, c1 in lin:
+        s = min(s, _max_scale_linear(max(c0, 0.0), c1))
+    if qa > _EPS:
+        disc = max(qb * qb - 4.0 * qa * qc, 0.0)
+        s = min(s, (-qb + math.sqrt(disc)) / (2.0 * qa))
+    return max(s, 0.0)
+
+
+def _R_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _R_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
+    """Closed-form optimum of eq:meth_optimization_problem_simplified, with saturation.
+
+    ``f_th* = min(f_max, (n_z a_n - g_z^PN) / cos(gamma_bar))``, ``phi* = phi(f_th*)``,
+    ``theta* = theta(f_th*)``, attitude ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``.
+    ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world frame).
+    """
+    R_W_PN = pn_frame(l, y_ref)
+    y_ax, z_ax = R_W_PN[:, 1], R_W_PN[:, 2]
+    a_y, a_z = float(y_ax @ a_n), float(z_ax @ a_n)  # n_y a_n, n_z a_n
+    g_y, g_z = float(y_ax @ g_W), float(z_ax @ g_W)  # g_y^PN (0 unless singular), g_z^PN
+    s = demand_scale(a_y, a_z, g_y, g_z, p)
+    if s is None:
+        t_z = -g_z
+        f = min(p.f_max, max(p.f_min, t_z))
+        return ThrustAttitude(f, 0.0, 0.0, R_W_PN, 0.0, True)
+    t_y, t_z = s * a_y - g_y, s * a_z - g_z
+    f = min(p.f_max, t_z / math.cos(p.gamma_bar))
+    f = max(f, p.f_min)  # only rounding can put it below (constraint (a))
+    theta, phi = roll_pitch(f, t_y, t_z)
+    R_W_B = R_W_PN @ _R_y(phi) @ _R_x(theta)
+    return ThrustAttitude(f, phi, theta, R_W_B, s, False)
+
+
+@dataclass(frozen=True, slots=True)
+class Setpoint:
+    """What goes to MAVSDK ``Offboard.set_attitude``: NED/FRD Euler (deg, absolute yaw) + thrust 0..1."""
+
+    roll_deg: float
+    pitch_deg: float
+    yaw_deg: float
+    thrust: float
+    R_ned_frd: np.ndarray  # the same attitude as a rotation matrix (body FRD -> world NED)
+
+    def q_wxyz(self) -> np.ndarray:
+        """The attitude as a scalar-first quaternion (MAVLink SET_ATTITUDE_TARGET order)."""
+        return quat_wxyz_from_R(self.R_ned_frd)
+
+
+def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> float:
+    """PX4's collective thrust 0..1 from mass-normalised thrust: ``hover_thrust * f_th / g``, clamped.
+
+    Never 0: a quadrotor at zero thrust falls and cannot recover.
+    """
+    return min(1.0, max(thrust_min, hover_thrust * f_th / G))
+
+
+def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
+    """The one conversion from the paper's frames (ENU/FLU) to a MAVSDK setpoint (NED/FRD)."""
+    R_ned_frd = P_NED_ENU @ R_W_B @ F_FRD_FLU
+    roll, pitch, yaw = euler_ned_deg_from_R(R_ned_frd)
+    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R_ned_frd)
+
+
+def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:
+    """Level attitude at the given yaw with hover thrust: the recover / no-target command."""
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Setpoint(0.0, 0.0, yaw_deg, hover_thrust, R)
