@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
-from companion.configbase import Hertz, Meters, Seconds, Section
+from companion.configbase import Hertz, Meters, Number, Seconds, Section
 
 
 class LinkConfig(Section):
@@ -13,23 +15,72 @@ class LinkConfig(Section):
     url: str = Field("udpin://127.0.0.1:14540", description="mavsdk connection URL (udpin://, udpout://, serial://)")
     connect_timeout: Seconds = Field(10.0, gt=0.0, le=600.0)
     setpoint_rate: Hertz = Field(30.0, ge=5.0, le=250.0)
+    command_timeout: Seconds = Field(5.0, gt=0.0, le=60.0, description="s; one MAVLink command incl. its ACK")
+    health_timeout: Seconds = Field(30.0, gt=0.0, le=600.0, description="s; wait for PX4's preflight checks")
+    link_lost_timeout: Seconds = Field(
+        1.5, gt=0.0, le=30.0, description="s without any telemetry before the link counts as lost"
+    )
+    takeoff_timeout: Seconds = Field(30.0, gt=0.0, le=600.0, description="s; take-off to the target altitude")
+    land_timeout: Seconds = Field(60.0, gt=0.0, le=600.0, description="s; landing and auto-disarm")
 
 
 class SafetyConfig(Section):
     """Abort limits; every abort ends in a named safe state."""
 
     target_lost_timeout: Seconds = Field(1.0, gt=0.0, le=30.0)
-    altitude_floor: Meters = Field(2.0, ge=0.0, le=1000.0, description="barometric altitude above take-off, m")
+    altitude_floor: Meters = Field(2.0, ge=0.0, le=1000.0, description="baro altitude above take-off, m")
     max_engagement_time: Seconds = Field(20.0, gt=0.0, le=600.0)
-    perception_stall_timeout: Seconds = Field(0.5, gt=0.0, le=10.0)
+    perception_stall_timeout: Seconds = Field(
+        0.5, gt=0.0, le=10.0,
+        description="s without a fresh setpoint from the control loop before the watchdog hands over to HOLD",
+    )
+    land_after_abort: bool = Field(
+        False, description="after an abort in HOLD, land and disarm (False: stay in HOLD for the pilot)"
+    )
 
 
 class AppConfig(Section):
     """State machine behaviour."""
 
+    start: Literal["takeoff", "pilot"] = Field(
+        "takeoff", description="takeoff: arm and take off; pilot: wait for the pilot's hover"
+    )
     takeoff_altitude: Meters = Field(10.0, gt=0.5, le=500.0)
-    acquire_frames: int = Field(10, ge=1, le=1000)
+    pilot_wait_timeout: Seconds = Field(120.0, gt=0.0, le=3600.0, description="s; start=pilot only")
+    acquire_frames: int = Field(10, ge=1, le=1000, description="valid boxes in a row = stable track")
+    acquire_timeout: Seconds = Field(15.0, gt=0.0, le=600.0, description="s; no stable track -> land")
+    close_trigger: Literal["ttc", "size", "either"] = Field(
+        "either", description="gate about to be passed: box time-to-contact, box size, or either"
+    )
+    ttc_threshold: Seconds = Field(0.35, gt=0.0, le=10.0, description="s; box time-to-contact")
+    size_threshold: Number = Field(
+        0.45, gt=0.0, le=2.0, description="box size (larger side) as a fraction of the image width"
+    )
+    on_close: Literal["fly_through", "pull_up"] = Field(
+        "fly_through",
+        description="fly_through: hold attitude until the gate leaves the view; pull_up: recover at once",
+    )
+    pass_timeout: Seconds = Field(1.0, gt=0.0, le=10.0, description="s; longest hold while passing a gate")
+    recover_time: Seconds = Field(1.5, gt=0.0, le=30.0, description="s of level attitude and hover thrust")
+    recover_thrust_scale: Number = Field(
+        1.0, ge=0.8, le=1.5, description="recover thrust as a multiple of hover thrust (>1 climbs)"
+    )
+    next_gate: bool = Field(True, description="engage again if a new gate is tracked during recover")
+    max_gates: int = Field(10, ge=1, le=1000)
+    camera: Literal["source", "synthetic"] = Field(
+        "source", description="source: the perception camera source; synthetic: render from the vehicle pose"
+    )
+    synthetic_render: Literal["geometric", "image"] = Field(
+        "image", description="synthetic camera: geometric box only, or rendered frames through the detector"
+    )
+    gate_distance: Meters = Field(25.0, gt=1.0, le=500.0, description="synthetic camera: gate distance, m")
+    gate_offset: Meters = Field(0.0, ge=-100.0, le=100.0, description="synthetic camera: lateral offset, m")
+    status_interval: Seconds = Field(0.5, gt=0.0, le=60.0, description="s between status lines")
 
 
 class LogConfig(Section):
     directory: str = Field("flights", description="one sub-folder per flight is created here")
+    flush_interval: Seconds = Field(
+        0.5, gt=0.0, le=1.0, description="s; CSV buffers reach the OS this often"
+    )
+    plot: bool = Field(True, description="write plot.png into the flight folder at the end")

@@ -1,0 +1,126 @@
+"""Pure safety logic of the flight app (no I/O, no asyncio): unit-testable with plain numbers.
+
+* ``CloseDetector``: is the gate about to be passed? Time-to-contact from the box's expansion
+  (tau = s / (ds/dt) for the box size s, which grows like 1/range) or the box size itself.
+* ``SafetyLimits``: target lost for T seconds, barometric altitude floor, maximum engagement time.
+* ``mode_is_pilot``: a flight mode the app did not ask for means the pilot has taken over.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.app.config import AppConfig, SafetyConfig
+from companion.app.states import Reason
+from perception.types import BoundingBox
+
+
+@dataclass(frozen=True)
+class CloseEstimate:
+    size_frac: float  # larger box side / image width
+    ttc: float  # s; inf when the box is not growing
+    close: bool
+    why: str
+
+
+class CloseDetector:
+    """Box history of one engagement -> "the gate is about to be passed"."""
+
+    def __init__(self, app: AppConfig, image_width: int, window_s: float = 0.25, min_samples: int = 4) -> None:
+        self.trigger = app.close_trigger
+        self.ttc_threshold = app.ttc_threshold
+        self.size_threshold = app.size_threshold
+        self.width = float(image_width)
+        self.window_s = window_s
+        self.min_samples = min_samples
+        self._hist: deque[tuple[float, float]] = deque(maxlen=64)
+
+    def reset(self) -> None:
+        self._hist.clear()
+
+    def ttc(self) -> float:
+        """Least-squares slope of size over the recent window: noise on single frames averages out."""
+        if len(self._hist) < self.min_samples:
+            return math.inf
+        t_last = self._hist[-1][0]
+        pts = [(t, s) for t, s in self._hist if t_last - t <= self.window_s]
+        if len(pts) < self.min_samples:
+            return math.inf
+        t = np.array([p[0] for p in pts])
+        s = np.array([p[1] for p in pts])
+        t_mean = float(t.mean())
+        t = t - t_mean
+        denom = float(t @ t)
+        if denom <= 0.0:
+            return math.inf
+        slope = float(t @ (s - s.mean())) / denom
+        if slope <= 0.0:
+            return math.inf
+        # The fit describes the window's centre; the contact time is the same instant, seen from now.
+        return max(0.0, float(s.mean()) / slope - (t_last - t_mean))
+
+    def update(self, t: float, box: BoundingBox | None, valid: bool) -> CloseEstimate:
+        if valid and box is not None:
+            self._hist.append((t, max(box.w, box.h)))
+        size = self._hist[-1][1] / self.width if self._hist else 0.0
+        tau = self.ttc()
+        by_ttc = self.trigger in ("ttc", "either") and tau < self.ttc_threshold
+        by_size = self.trigger in ("size", "either") and size > self.size_threshold
+        why = ""
+        if by_ttc:
+            why = f"time-to-contact {tau:.2f} s < {self.ttc_threshold:.2f} s"
+        elif by_size:
+            why = f"box {size:.2f} of image width > {self.size_threshold:.2f}"
+        return CloseEstimate(size, tau, by_ttc or by_size, why)
+
+
+@dataclass(frozen=True)
+class Abort:
+    reason: Reason
+    detail: str
+
+
+class SafetyLimits:
+    """Abort checks that run on every control step of an engagement."""
+
+    def __init__(self, safety: SafetyConfig) -> None:
+        self.cfg = safety
+
+    def check(
+        self,
+        now: float,
+        engage_start: float,
+        last_valid_box: float,
+        baro_rel_alt: float | None,
+    ) -> Abort | None:
+        c = self.cfg
+        if baro_rel_alt is not None and math.isfinite(baro_rel_alt) and baro_rel_alt < c.altitude_floor:
+            return Abort(Reason.ALTITUDE_FLOOR,
+                         f"barometric altitude {baro_rel_alt:.1f} m below the floor {c.altitude_floor:.1f} m")
+        lost = now - last_valid_box
+        if lost > c.target_lost_timeout:
+            return Abort(Reason.TARGET_LOST, f"no usable box for {lost:.2f} s (limit {c.target_lost_timeout:.2f} s)")
+        engaged = now - engage_start
+        if engaged > c.max_engagement_time:
+            return Abort(Reason.MAX_ENGAGEMENT,
+                         f"engaged for {engaged:.1f} s (limit {c.max_engagement_time:.1f} s)")
+        return None
+
+
+# PX4 modes the app itself puts the vehicle in (or that PX4 passes through on its own) per phase.
+# Anything else while we are responsible means the pilot (or a failsafe) took over.
+EXPECTED_MODES: dict[str, frozenset[str]] = {
+    "takeoff": frozenset({"TAKEOFF", "HOLD", "READY", "UNKNOWN"}),
+    "hold": frozenset({"HOLD"}),
+    "offboard": frozenset({"OFFBOARD"}),
+    "land": frozenset({"LAND", "HOLD", "READY", "UNKNOWN"}),
+}
+
+
+def mode_is_pilot(phase: str, mode: str, pilot_modes_ok: frozenset[str] = frozenset()) -> bool:
+    """True when ``mode`` (MAVSDK FlightMode name) is not one this phase expects."""
+    return mode not in EXPECTED_MODES[phase] and mode not in pilot_modes_ok

@@ -1,0 +1,153 @@
+"""The flight app's one explicit state machine: states, allowed transitions, outcomes.
+
+Normal flight::
+
+    INIT -> CONNECT -> PREFLIGHT -> ARM -> TAKEOFF ----------+
+                                 \\-> WAIT_PILOT (start=pilot) +-> ACQUIRE -> ENGAGE -> PASS -> RECOVER
+    RECOVER -> ENGAGE (next gate tracked)  |  RECOVER -> HANDBACK -> LAND -> SAFE_LANDED
+
+Every fault leaves for exactly one named safe state (terminal), with a ``Reason`` whose value is
+the process exit code, so a script or systemd sees what happened without reading the log.
+"""
+
+from __future__ import annotations
+
+import enum
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TextIO
+
+
+class State(enum.Enum):
+    INIT = "INIT"
+    CONNECT = "CONNECT"
+    PREFLIGHT = "PREFLIGHT"
+    ARM = "ARM"
+    TAKEOFF = "TAKEOFF"
+    WAIT_PILOT = "WAIT_PILOT"  # start=pilot: the pilot arms and hovers, we wait
+    ACQUIRE = "ACQUIRE"  # PX4 holds; we look for a stable track
+    ENGAGE = "ENGAGE"  # offboard, PN
+    PASS = "PASS"  # gate close: hold the last attitude until it leaves the view
+    RECOVER = "RECOVER"  # offboard, level attitude, hover thrust
+    HANDBACK = "HANDBACK"  # offboard stop -> PX4 HOLD
+    LAND = "LAND"
+    # Terminal safe states.
+    SAFE_LANDED = "SAFE_LANDED"  # on the ground, disarmed
+    SAFE_HOLD = "SAFE_HOLD"  # we stopped offboard; PX4 holds (pilot/operator decides what next)
+    SAFE_PILOT = "SAFE_PILOT"  # the pilot took over; we stopped commanding and never re-enter offboard
+    SAFE_FAILSAFE_LINK = "SAFE_FAILSAFE_LINK"  # link lost: we stopped streaming, PX4's own failsafe acts
+    ABORT_NOT_ARMED = "ABORT_NOT_ARMED"  # never left the ground (connect/preflight/arm failed)
+
+    @property
+    def terminal(self) -> bool:
+        return self in SAFE_STATES
+
+    @property
+    def offboard(self) -> bool:
+        """States in which the app streams setpoints to PX4."""
+        return self in (State.ENGAGE, State.PASS, State.RECOVER)
+
+
+SAFE_STATES = frozenset(
+    {State.SAFE_LANDED, State.SAFE_HOLD, State.SAFE_PILOT, State.SAFE_FAILSAFE_LINK, State.ABORT_NOT_ARMED}
+)
+
+
+class Reason(enum.IntEnum):
+    """Why the flight ended; the value is the process exit code (1 = crash, 2 = config error are taken)."""
+
+    OK = 0  # gate(s) passed, handed back, landed, disarmed
+    NO_TARGET = 10  # no stable track within acquire_timeout
+    TARGET_LOST = 11
+    PERCEPTION_STALL = 12  # watchdog: no fresh control output
+    ALTITUDE_FLOOR = 13
+    MAX_ENGAGEMENT = 14
+    PILOT_TAKEOVER = 15
+    LINK_LOST = 16
+    ARM_DENIED = 17
+    OFFBOARD_DENIED = 18
+    COMMAND_TIMEOUT = 19
+    CONNECT_FAILED = 20
+    PREFLIGHT_FAILED = 21
+    EXCEPTION = 22
+    SIGNAL = 23  # SIGTERM / SIGINT: orderly hand-over
+    CAMERA_FAILED = 24
+
+
+_NORMAL: dict[State, frozenset[State]] = {
+    State.INIT: frozenset({State.CONNECT}),
+    State.CONNECT: frozenset({State.PREFLIGHT}),
+    State.PREFLIGHT: frozenset({State.ARM, State.WAIT_PILOT}),
+    State.ARM: frozenset({State.TAKEOFF}),
+    State.TAKEOFF: frozenset({State.ACQUIRE}),
+    State.WAIT_PILOT: frozenset({State.ACQUIRE}),
+    State.ACQUIRE: frozenset({State.ENGAGE, State.LAND}),
+    # HANDBACK from any offboard state: an abort stops offboard (PX4 HOLD brakes) before the safe state.
+    State.ENGAGE: frozenset({State.PASS, State.RECOVER, State.HANDBACK}),
+    State.PASS: frozenset({State.RECOVER, State.HANDBACK}),
+    State.RECOVER: frozenset({State.ENGAGE, State.HANDBACK}),
+    State.HANDBACK: frozenset({State.LAND, State.SAFE_HOLD}),
+    State.LAND: frozenset({State.SAFE_LANDED}),
+}
+# Before the vehicle is armed, a failure can only mean "not armed"; once it may fly, any safe state but that.
+_GROUND = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
+_AIR_SAFE = SAFE_STATES - {State.ABORT_NOT_ARMED}
+
+TRANSITIONS: dict[State, frozenset[State]] = {
+    s: _NORMAL.get(s, frozenset()) | (
+        frozenset() if s.terminal else
+        (frozenset({State.ABORT_NOT_ARMED, State.SAFE_HOLD, State.SAFE_LANDED}) if s in _GROUND else _AIR_SAFE)
+    )
+    for s in State
+}
+# Arming can succeed and the take-off then be refused: the vehicle is armed on the ground.
+TRANSITIONS[State.ARM] |= {State.SAFE_LANDED}
+
+
+class IllegalTransition(RuntimeError):
+    """A programming error: the app tried a transition the table does not allow."""
+
+
+@dataclass(frozen=True)
+class Transition:
+    t: float
+    src: State
+    dst: State
+    reason: str
+
+
+@dataclass
+class StateMachine:
+    """Holds the current state; every change goes through ``go`` and is reported to the sinks with a reason."""
+
+    clock: Callable[[], float]
+    sinks: list[Callable[[Transition], None]] = field(default_factory=list)
+    stderr: TextIO | None = sys.stderr
+    state: State = State.INIT
+    history: list[Transition] = field(default_factory=list)
+    outcome: Reason | None = None
+
+    def go(self, dst: State, reason: str, outcome: Reason | None = None) -> Transition:
+        if dst not in TRANSITIONS[self.state]:
+            raise IllegalTransition(f"state machine: {self.state.value} -> {dst.value} is not allowed ({reason})")
+        tr = Transition(self.clock(), self.state, dst, reason)
+        self.state = dst
+        self.history.append(tr)
+        if dst.terminal:
+            self.outcome = outcome if outcome is not None else Reason.OK
+        for sink in self.sinks:
+            sink(tr)
+        if self.stderr is not None and (dst.terminal or outcome is not None):
+            code = ""
+            if dst.terminal and self.outcome is not None:
+                code = f" (exit {self.outcome.value} {self.outcome.name})"
+            print(f"companion: {tr.src.value} -> {dst.value}: {reason}{code}", file=self.stderr, flush=True)
+        return tr
+
+    @property
+    def done(self) -> bool:
+        return self.state.terminal
+
+    def path(self) -> list[State]:
+        return [self.state if not self.history else self.history[0].src] + [h.dst for h in self.history]

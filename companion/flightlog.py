@@ -1,0 +1,308 @@
+"""Flight log: one folder per flight, one CSV file per topic, written as it happens.
+
+Why CSV per topic (and not MCAP): every field engineer's tool reads it (numpy, pandas,
+a spreadsheet, ``column -s,``), each topic has a fixed header, and an append-only text
+file stays readable after a SIGKILL or a power cut: at worst the last line is cut
+short, and the reader drops it. An MCAP file killed mid-write has no summary section
+and a possibly truncated chunk, which needs a recovery step first.
+
+Layout of a flight folder::
+
+    meta.json      start wall time, host, command line, format version
+    config.json    the full config used (canonical units)
+    states.csv     every state transition with its reason (flushed at once)
+    <topic>.csv    telemetry, truth, detections, los, setpoints, ... (flushed every flush_interval)
+    summary.json   the outcome (safe state, reason, exit code), written at the end
+    plot.png       optional, ``plot_flight``
+
+Times are seconds on the flight clock (monotonic, 0 at log start).
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import io
+import json
+import math
+import os
+import socket
+import sys
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT_VERSION = 1
+
+# Topics with their columns. Fixed here so a reader (and a test) knows what to expect.
+TOPICS: dict[str, tuple[str, ...]] = {
+    "states": ("t", "from_state", "to_state", "reason"),
+    "events": ("t", "level", "text"),
+    "telemetry": (
+        "t", "t_att", "qw", "qx", "qy", "qz", "roll_deg", "pitch_deg", "yaw_deg",
+        "baro_alt_m", "flight_mode", "armed", "landed_state",
+    ),
+    # Ground truth / EKF position & velocity: for scoring and plots only, never a controller input.
+    "truth": ("t", "n", "e", "d", "vn", "ve", "vd"),
+    "detections": ("t", "t_frame", "frame", "cx", "cy", "w", "h", "confidence", "valid"),
+    "los": ("t", "t_frame", "los_n", "los_e", "los_d", "lambda_dot", "a_n", "demand_scale", "rejected"),
+    "setpoints": (
+        "t", "t_frame", "state", "ctrl_mode", "roll_deg", "pitch_deg", "yaw_deg", "thrust", "latency_ms",
+    ),
+    "gate": ("t", "gate_n", "gate_e", "gate_d", "visible"),  # synthetic camera only: the virtual gate
+}
+IMMEDIATE = frozenset({"states", "events"})  # rare and precious: straight to the OS
+
+
+def _fmt(v: Any) -> Any:
+    if isinstance(v, bool | np.bool_):
+        return int(v)
+    if isinstance(v, float | np.floating):
+        return format(float(v), ".9g")
+    if v is None:
+        return ""
+    return v
+
+
+class _Topic:
+    def __init__(self, path: Path, columns: Sequence[str]) -> None:
+        self.columns = tuple(columns)
+        # Line buffering is not used: a write per row would cost a syscall per row at 30 Hz x topics.
+        self._f = open(path, "w", encoding="utf-8", newline="")  # noqa: SIM115 (lives as long as the log)
+        self._w = csv.writer(self._f, lineterminator="\n")
+        self._w.writerow(self.columns)
+        self._f.flush()  # the header is on disk from the start: a killed flight still has parseable files
+        self.rows = 0
+
+    def write(self, values: Sequence[Any]) -> None:
+        if len(values) != len(self.columns):
+            raise ValueError(f"flight log: {len(values)} values for {len(self.columns)} columns {self.columns}")
+        self._w.writerow([_fmt(v) for v in values])
+        self.rows += 1
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def close(self, sync: bool) -> None:
+        if self._f.closed:
+            return
+        self._f.flush()
+        if sync:
+            os.fsync(self._f.fileno())
+        self._f.close()
+
+
+class FlightLog:
+    """Writer. ``write(topic, **values)``; ``flush()`` is called by ``tick()`` at least every flush_interval."""
+
+    def __init__(
+        self,
+        folder: Path,
+        config: Mapping[str, Any] | None = None,
+        flush_interval: float = 0.5,
+        clock: Any = time.monotonic,
+        argv: Sequence[str] | None = None,
+    ) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=False)
+        self._clock = clock
+        self.t0 = clock()
+        self.flush_interval = float(flush_interval)
+        self._last_flush = self.t0
+        self._topics: dict[str, _Topic] = {}
+        self.closed = False
+        meta = {
+            "format": "companion-flightlog-csv",
+            "version": FORMAT_VERSION,
+            "start_utc": dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
+            "host": socket.gethostname(),
+            "pid": os.getpid(),
+            "argv": list(argv if argv is not None else sys.argv),
+            "topics": {k: list(v) for k, v in TOPICS.items()},
+        }
+        _write_json(self.folder / "meta.json", meta)
+        if config is not None:
+            _write_json(self.folder / "config.json", dict(config))
+        # A summary exists from the start: after a SIGKILL it still says "running" (the flight did not end).
+        _write_json(self.folder / "summary.json", {"outcome": "running"})
+        for name in TOPICS:
+            self._topics[name] = _Topic(self.folder / f"{name}.csv", TOPICS[name])
+
+    @classmethod
+    def create(cls, directory: str | Path, config: Mapping[str, Any] | None = None, **kw: Any) -> FlightLog:
+        """A new folder ``directory/YYYYmmdd-HHMMSS[-n]`` (never reuses an existing one)."""
+        base = Path(directory)
+        base.mkdir(parents=True, exist_ok=True)
+        stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        for n in range(1000):
+            folder = base / (stamp if n == 0 else f"{stamp}-{n}")
+            try:
+                return cls(folder, config, **kw)
+            except FileExistsError:
+                continue
+        raise RuntimeError(f"flight log: cannot create a new folder under {base}")
+
+    def now(self) -> float:
+        return self._clock() - self.t0
+
+    def write(self, topic: str, **values: Any) -> None:
+        if self.closed:
+            return
+        tp = self._topics.get(topic)
+        if tp is None:
+            raise KeyError(f"flight log: unknown topic {topic!r} (known: {', '.join(TOPICS)})")
+        values.setdefault("t", self.now())
+        unknown = set(values) - set(tp.columns)
+        if unknown:
+            raise KeyError(f"flight log: topic {topic!r} has no column(s) {sorted(unknown)}")
+        tp.write([values.get(c) for c in tp.columns])
+        if topic in IMMEDIATE:
+            tp.flush()
+        self.tick()
+
+    def state(self, from_state: str, to_state: str, reason: str, t: float | None = None) -> None:
+        self.write("states", t=self.now() if t is None else t, from_state=from_state, to_state=to_state,
+                   reason=reason)
+
+    def event(self, text: str, level: str = "info") -> None:
+        self.write("events", level=level, text=text)
+
+    def tick(self) -> None:
+        """Flush buffered topics if flush_interval has passed (cheap; call often)."""
+        now = self._clock()
+        if now - self._last_flush >= self.flush_interval:
+            self.flush()
+
+    def flush(self) -> None:
+        for tp in self._topics.values():
+            tp.flush()
+        self._last_flush = self._clock()
+
+    def rows(self, topic: str) -> int:
+        return self._topics[topic].rows
+
+    def close(self, summary: Mapping[str, Any] | None = None) -> None:
+        if self.closed:
+            return
+        for tp in self._topics.values():
+            tp.close(sync=True)
+        if summary is not None:
+            s = dict(summary)
+            s.setdefault("duration_s", self.now())
+            s["rows"] = {k: v.rows for k, v in self._topics.items()}
+            _write_json(self.folder / "summary.json", s)
+        self.closed = True
+
+
+def _write_json(path: Path, data: Any) -> None:
+    # Write-then-rename: a reader never sees half a JSON file.
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, default=_json_default) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+
+@dataclass
+class Table:
+    """One topic: column name -> numpy array (float where every value parses, else str)."""
+
+    columns: tuple[str, ...]
+    data: dict[str, np.ndarray]
+    truncated_rows: int = 0  # rows dropped because the file was cut mid-line
+
+    def __len__(self) -> int:
+        return len(next(iter(self.data.values()))) if self.data else 0
+
+    def __getitem__(self, col: str) -> np.ndarray:
+        return self.data[col]
+
+    def rows(self) -> list[dict[str, Any]]:
+        return [{c: self.data[c][i] for c in self.columns} for i in range(len(self))]
+
+
+@dataclass
+class Flight:
+    folder: Path
+    meta: dict[str, Any]
+    config: dict[str, Any]
+    summary: dict[str, Any]
+    tables: dict[str, Table] = field(default_factory=dict)
+
+    def __getitem__(self, topic: str) -> Table:
+        return self.tables[topic]
+
+    @property
+    def states(self) -> list[dict[str, Any]]:
+        return self.tables["states"].rows() if "states" in self.tables else []
+
+    def state_path(self) -> list[str]:
+        """The sequence of states entered, in order."""
+        return [str(r["to_state"]) for r in self.states]
+
+
+def _column(values: list[str]) -> np.ndarray:
+    try:
+        return np.array([float(v) if v != "" else math.nan for v in values], dtype=float)
+    except ValueError:
+        return np.array(values, dtype=object)
+
+
+def read_table(path: str | Path) -> Table:
+    """Read one topic CSV, dropping a last line cut short by a kill."""
+    text = Path(path).read_text(encoding="utf-8", errors="replace")
+    truncated = 0
+    if text and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]  # the unfinished last line
+        truncated = 1
+    rows = list(csv.reader(io.StringIO(text)))
+    if not rows:
+        raise ValueError(f"{path}: empty flight-log file (no header)")
+    header = tuple(rows[0])
+    body = [r for r in rows[1:] if len(r) == len(header)]
+    truncated += len(rows) - 1 - len(body)
+    data = {c: _column([r[i] for r in body]) for i, c in enumerate(header)}
+    return Table(header, data, truncated)
+
+
+def read_flight(folder: str | Path, topics: Iterable[str] | None = None) -> Flight:
+    """Read a flight folder (also one whose writer was killed). Missing JSON files read as {}."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: not a flight-log folder")
+
+    def js(name: str) -> dict[str, Any]:
+        p = folder / name
+        return json.loads(p.read_text(encoding="utf-8")) if p.exists() else {}
+
+    flight = Flight(folder, js("meta.json"), js("config.json"), js("summary.json"))
+    names = list(topics) if topics is not None else [p.stem for p in sorted(folder.glob("*.csv"))]
+    for name in names:
+        p = folder / f"{name}.csv"
+        if p.exists():
+            flight.tables[name] = read_table(p)
+    return flight
+
+
+def latest_flight(directory: str | Path) -> Path | None:
+    """The most recently created flight folder under ``directory`` (None if there is none)."""
+    base = Path(directory)
+    if not base.is_dir():
+        return None
+    folders = [p for p in base.iterdir() if (p / "meta.json").exists()]
+    return max(folders, key=lambda p: p.stat().st_mtime_ns, default=None)

@@ -1,0 +1,139 @@
+"""State machine table, pure safety logic, systemd notify protocol on a real AF_UNIX socket."""
+
+from __future__ import annotations
+
+import io
+import math
+import socket
+
+import numpy as np
+import pytest
+
+from companion.app.config import AppConfig, SafetyConfig
+from companion.app.notify import Notifier
+from companion.app.safety import CloseDetector, SafetyLimits, mode_is_pilot
+from companion.app.states import SAFE_STATES, TRANSITIONS, IllegalTransition, Reason, State, StateMachine
+from perception.types import BoundingBox
+
+pytestmark = pytest.mark.timeout(30)
+
+
+def test_normal_flight_path_is_allowed_and_logged():
+    seen = []
+    err = io.StringIO()
+    sm = StateMachine(clock=lambda: 1.0, sinks=[seen.append], stderr=err)
+    for s in ["CONNECT", "PREFLIGHT", "ARM", "TAKEOFF", "ACQUIRE", "ENGAGE", "PASS", "RECOVER", "ENGAGE",
+              "PASS", "RECOVER", "HANDBACK", "LAND"]:
+        sm.go(State(s), f"to {s}")
+    sm.go(State.SAFE_LANDED, "landed and disarmed")
+    assert sm.done and sm.outcome is Reason.OK
+    assert [t.dst.value for t in seen][-1] == "SAFE_LANDED" and len(seen) == 14
+    assert "SAFE_LANDED: landed and disarmed (exit 0 OK)" in err.getvalue()
+
+
+def test_terminal_states_have_no_exit_and_every_live_state_reaches_a_safe_state():
+    for s in State:
+        if s.terminal:
+            assert TRANSITIONS[s] == frozenset()
+        else:
+            assert TRANSITIONS[s] & SAFE_STATES, s
+    # Once the vehicle may be in the air, "not armed" is never a valid end.
+    for s in (State.TAKEOFF, State.ACQUIRE, State.ENGAGE, State.RECOVER):
+        assert State.ABORT_NOT_ARMED not in TRANSITIONS[s]
+
+
+def test_illegal_transition_raises():
+    sm = StateMachine(clock=lambda: 0.0, stderr=None)
+    with pytest.raises(IllegalTransition, match="INIT -> ENGAGE"):
+        sm.go(State.ENGAGE, "skip everything")
+
+
+def test_exit_codes_are_distinct():
+    codes = [r.value for r in Reason]
+    assert len(codes) == len(set(codes)) and 1 not in codes and 2 not in codes
+
+
+def box(s: float, t: float) -> BoundingBox:
+    return BoundingBox(320, 240, s, s, 1.0, t)
+
+
+def test_ttc_matches_the_geometry_of_an_approach():
+    """Gate of size D at range Z(t) = Z0 - v t: box s = f D / Z, so tau = s / s' = Z / v exactly."""
+    app = AppConfig(close_trigger="ttc", ttc_threshold=0.5)
+    det = CloseDetector(app, 640, window_s=0.25)
+    f, d, z0, v = 483.5, 2.0, 25.0, 10.0
+    ests = []
+    for i in range(int(2.3 * 30)):
+        t = i / 30
+        z = z0 - v * t
+        ests.append((t, z / v, det.update(t, box(f * d / z, t), True)))
+    # Where the window is full, the estimate follows Z/v (to 5 % or 20 ms).
+    for t, true_tau, e in ests[10:]:
+        assert e.ttc == pytest.approx(true_tau, rel=0.05, abs=0.02), t
+    first_close = next(t for t, _, e in ests if e.close)
+    # Triggers when Z/v crosses 0.5 s, i.e. at t = 2.0 s (one frame of slack for the bias).
+    assert 1.95 <= first_close <= 2.04
+
+
+def test_size_trigger_and_no_trigger_when_receding():
+    app = AppConfig(close_trigger="size", size_threshold=0.4)
+    det = CloseDetector(app, 640)
+    assert not det.update(0.0, box(200, 0.0), True).close
+    e = det.update(0.1, box(260, 0.1), True)
+    assert e.close and "box 0.41" in e.why
+    det2 = CloseDetector(AppConfig(close_trigger="ttc"), 640)
+    for i in range(20):  # shrinking box: never close by ttc
+        assert math.isinf(det2.update(i / 30, box(100 - i, i / 30), True).ttc)
+
+
+def test_ttc_noise_does_not_trigger_far_away():
+    rng = np.random.default_rng(3)
+    det = CloseDetector(AppConfig(close_trigger="ttc", ttc_threshold=0.35), 640)
+    for i in range(90):  # 25 m -> 16 m at 3 m/s: true tau >= 5 s; 1 px noise on a ~40-60 px box
+        t = i / 30
+        s = 483.5 * 2.0 / (25.0 - 3.0 * t) + rng.normal(0, 1.0)
+        assert not det.update(t, box(s, t), True).close
+
+
+def test_safety_limits_each_fire_alone():
+    lim = SafetyLimits(SafetyConfig(target_lost_timeout=1.0, altitude_floor=2.0, max_engagement_time=5.0))
+    assert lim.check(now=3.0, engage_start=0.0, last_valid_box=2.5, baro_rel_alt=10.0) is None
+    a = lim.check(now=3.0, engage_start=0.0, last_valid_box=1.9, baro_rel_alt=10.0)
+    assert a.reason is Reason.TARGET_LOST and "1.10 s" in a.detail
+    assert lim.check(now=3.0, engage_start=0.0, last_valid_box=2.9, baro_rel_alt=1.5).reason is Reason.ALTITUDE_FLOOR
+    assert lim.check(now=5.5, engage_start=0.0, last_valid_box=5.4, baro_rel_alt=None).reason is Reason.MAX_ENGAGEMENT
+    assert lim.check(now=3.0, engage_start=0.0, last_valid_box=2.9, baro_rel_alt=math.nan) is None
+
+
+def test_pilot_modes():
+    assert mode_is_pilot("offboard", "POSCTL")
+    assert mode_is_pilot("offboard", "HOLD")
+    assert not mode_is_pilot("offboard", "OFFBOARD")
+    assert mode_is_pilot("hold", "MANUAL") and not mode_is_pilot("hold", "HOLD")
+
+
+def test_notify_protocol_on_a_real_socket(tmp_path, monkeypatch):
+    path = str(tmp_path / "notify.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(path)
+    srv.settimeout(5.0)
+    try:
+        monkeypatch.setenv("NOTIFY_SOCKET", path)
+        monkeypatch.setenv("WATCHDOG_USEC", "2000000")
+        monkeypatch.delenv("WATCHDOG_PID", raising=False)
+        n = Notifier()
+        assert n.enabled and Notifier.watchdog_interval() == pytest.approx(1.0)
+        assert n.ready("connecting")
+        assert srv.recv(4096) == b"READY=1\nSTATUS=connecting"
+        assert n.watchdog()
+        assert srv.recv(4096) == b"WATCHDOG=1"
+        n.status("ENGAGE\nline two")
+        assert srv.recv(4096) == b"STATUS=ENGAGE line two"
+        n.stopping("SIGTERM")
+        assert srv.recv(4096) == b"STOPPING=1\nSTATUS=SIGTERM"
+        n.close()
+    finally:
+        srv.close()
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    quiet = Notifier()
+    assert not quiet.enabled and not quiet.ready()
