@@ -97,6 +97,7 @@ class ScenarioConfig(Section):
     altitude_min: Meters = Field(10.0, gt=0.5, le=500.0, description="start altitude AGL, m")
     altitude_max: Meters = Field(20.0, gt=0.5, le=500.0)
     gate_height_offset: Meters = Field(1.0, ge=0.0, le=50.0, description="gate centre +- this, m")
+    visual_radius: Meters = Field(1.0, gt=0.05, le=20.0, description="radius of the ring the camera sees, m")
     gate_radii: list[float] = Field(default_factory=lambda: [0.5, 1.0, 2.0], min_length=1)
     timeout: Seconds = Field(20.0, gt=0.1, le=600.0, description="run ends unscored after this, s")
     fov_timeout: Seconds = Field(1.0, gt=0.0, le=60.0, description="no box for this long: fov_lost, s")
@@ -104,7 +105,7 @@ class ScenarioConfig(Section):
 
 class SimConfig(Section):
     seed: int = Field(0, ge=0)
-    rate: Hertz = Field(240.0, ge=200.0, le=5000.0, description="dynamics integration rate, Hz")
+    rate: Hertz = Field(200.0, ge=200.0, le=5000.0, description="dynamics integration rate, Hz")
     quad: SimQuadConfig = SimQuadConfig()
     wind: WindConfig = WindConfig()
     sensors: SensorsConfig = SensorsConfig()

@@ -87,7 +87,7 @@ class QuadState:
     ground_contact: bool = False  # latched: touched the ground faster than max_touchdown_speed
 
 
-def _qmul(a: tuple, b: tuple) -> tuple:
+def qmul(a: tuple, b: tuple) -> tuple:
     """Hamilton product of xyzw quaternions (tuples of floats)."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
@@ -124,6 +124,7 @@ class Quadrotor:
 
     def __init__(self, params: QuadParams, state: QuadState | None = None):
         self.params = params
+        self._coeffs: dict[float, tuple[int, float, float, float]] = {}  # per dt: substeps and gains
         self.state = state if state is not None else QuadState()
 
     @property
@@ -173,18 +174,21 @@ class Quadrotor:
         if not dt > 0.0:
             raise ValueError(f"Quadrotor.step: dt must be > 0 (got {dt})")
         p = self.params
-        qc = tuple(float(c) for c in q_cmd)
-        nrm = math.sqrt(sum(c * c for c in qc))
+        c0, c1, c2, c3 = float(q_cmd[0]), float(q_cmd[1]), float(q_cmd[2]), float(q_cmd[3])
+        nrm = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3)
         if not (nrm > 1e-9 and math.isfinite(nrm)):
             raise ValueError(f"Quadrotor.step: q_cmd is not a quaternion (got {q_cmd})")
-        qc = (qc[0] / nrm, qc[1] / nrm, qc[2] / nrm, qc[3] / nrm)
+        qc = (c0 / nrm, c1 / nrm, c2 / nrm, c3 / nrm)
         thr = min(max(float(thrust_norm), 0.0), 1.0)
         f_cmd = min(thr * G / p.hover_thrust, p.f_max)
-        wind = (0.0, 0.0, 0.0) if wind_enu is None else tuple(float(c) for c in wind_enu)
-        n = max(1, math.ceil(dt / p.max_step - 1e-9))
-        h = dt / n
-        a_w = 1.0 - math.exp(-h / p.tau_omega)
-        a_f = 1.0 - math.exp(-h / p.tau_thrust)
+        wind = (0.0, 0.0, 0.0) if wind_enu is None else (float(wind_enu[0]), float(wind_enu[1]), float(wind_enu[2]))
+        coeffs = self._coeffs.get(dt)
+        if coeffs is None:
+            n = max(1, math.ceil(dt / p.max_step - 1e-9))
+            h = dt / n
+            coeffs = (n, h, 1.0 - math.exp(-h / p.tau_omega), 1.0 - math.exp(-h / p.tau_thrust))
+            self._coeffs[dt] = coeffs
+        n, h, a_w, a_f = coeffs
         k_att = 2.0 / p.tau_att
         wmax = p.max_rate
         for _ in range(n):
@@ -192,26 +196,30 @@ class Quadrotor:
         return self._publish()
 
     def _substep(self, h, qc, f_cmd, wind, a_w, a_f, k_att, wmax) -> None:
+        # Hand-inlined quaternion algebra: this is the simulator's innermost loop.
         p = self.params
-        q = self._q
+        qx, qy, qz, qw = self._q
+        cx, cy, cz, cw = qc
         # Attitude controller (Brescianini): q_e = q^-1 * q_c, omega_c = 2/tau sgn(q_e0) q_e(1:3).
-        ex, ey, ez, ew = _qmul((-q[0], -q[1], -q[2], q[3]), qc)
-        s = k_att if ew >= 0.0 else -k_att
+        ew = qw * cw + qx * cx + qy * cy + qz * cz
+        ex = qw * cx - qx * cw - qy * cz + qz * cy
+        ey = qw * cy + qx * cz - qy * cw - qz * cx
+        ez = qw * cz - qx * cy + qy * cx - qz * cw
+        k = k_att if ew >= 0.0 else -k_att
         w = self._w
-        for i, e in enumerate((ex, ey, ez)):
-            wc = min(max(s * e, -wmax), wmax)
-            w[i] += (wc - w[i]) * a_w  # exact discretisation of the first-order rate response
-        # Thrust lag.
-        self._f += (f_cmd - self._f) * a_f
-        # Translational dynamics: a = R (f e_z) - f_aero / m + g.
+        # Exact discretisation of the first-order rate response, command clipped to the rate limit.
+        w[0] += (min(max(k * ex, -wmax), wmax) - w[0]) * a_w
+        w[1] += (min(max(k * ey, -wmax), wmax) - w[1]) * a_w
+        w[2] += (min(max(k * ez, -wmax), wmax) - w[2]) * a_w
+        self._f += (f_cmd - self._f) * a_f  # thrust lag
+        f = self._f
+        # Translational dynamics: a = R (f e_z) - f_aero / m + g; R e_z is the third column of R(q).
         v = self._v
         vax, vay, vaz = v[0] - wind[0], v[1] - wind[1], v[2] - wind[2]
-        speed = math.sqrt(vax * vax + vay * vay + vaz * vaz)
-        k_d = (p.drag_lin + p.drag_quad * speed) / p.mass
-        tx, ty, tz = _rot(q, (0.0, 0.0, self._f))
-        ax = tx - k_d * vax
-        ay = ty - k_d * vay
-        az = tz - k_d * vaz - G
+        k_d = (p.drag_lin + p.drag_quad * math.sqrt(vax * vax + vay * vay + vaz * vaz)) / p.mass
+        ax = 2.0 * f * (qx * qz + qy * qw) - k_d * vax
+        ay = 2.0 * f * (qy * qz - qx * qw) - k_d * vay
+        az = f * (1.0 - 2.0 * (qx * qx + qy * qy)) - k_d * vaz - G
         pos = self._p
         if self._on_ground and az <= 0.0:
             # Resting on the ground: the normal force cancels everything (legs don't slide).
@@ -240,10 +248,13 @@ class Quadrotor:
         if wn > 1e-12:
             half = 0.5 * wn * h
             sh = math.sin(half) / wn
-            dq = (wx * sh, wy * sh, wz * sh, math.cos(half))
-            q = _qmul(q, dq)
-            qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-            self._q = (q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn)
+            dx, dy, dz, dw = wx * sh, wy * sh, wz * sh, math.cos(half)
+            nx = qw * dx + qx * dw + qy * dz - qz * dy
+            ny = qw * dy - qx * dz + qy * dw + qz * dx
+            nz = qw * dz + qx * dy - qy * dx + qz * dw
+            nw = qw * dw - qx * dx - qy * dy - qz * dz
+            qn = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+            self._q = (nx * qn, ny * qn, nz * qn, nw * qn)
         self._t += h
 
     def specific_force_body(self) -> np.ndarray:
@@ -254,3 +265,52 @@ class Quadrotor:
     def acceleration_world(self) -> np.ndarray:
         """True acceleration of the last substep, ENU m/s^2 (for scoring and tests)."""
         return np.array(self._a)
+
+
+# -- rotation helpers for the simulator's 30 Hz loop (scipy's Rotation costs ~30 us per construction) --
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit xyzw quaternion (same result as scipy's ``from_quat().as_matrix()``)."""
+    x, y, z, w = (float(c) for c in q)
+    n = x * x + y * y + z * z + w * w
+    s = 2.0 / n
+    return np.array([
+        [1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
+        [s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w)],
+        [s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """xyzw quaternion (w >= 0) of a rotation matrix, Shepperd's method (numerically safe branch)."""
+    m00, m01, m02 = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
+    m10, m11, m12 = float(R[1, 0]), float(R[1, 1]), float(R[1, 2])
+    m20, m21, m22 = float(R[2, 0]), float(R[2, 1]), float(R[2, 2])
+    tr = m00 + m11 + m22
+    if tr >= max(m00, m11, m22):
+        r = math.sqrt(1.0 + tr)
+        q = (0.5 * (m21 - m12) / r, 0.5 * (m02 - m20) / r, 0.5 * (m10 - m01) / r, 0.5 * r)
+    elif m00 >= m11 and m00 >= m22:
+        r = math.sqrt(1.0 + m00 - m11 - m22)
+        q = (0.5 * r, 0.5 * (m01 + m10) / r, 0.5 * (m02 + m20) / r, 0.5 * (m21 - m12) / r)
+    elif m11 >= m22:
+        r = math.sqrt(1.0 - m00 + m11 - m22)
+        q = (0.5 * (m01 + m10) / r, 0.5 * r, 0.5 * (m12 + m21) / r, 0.5 * (m02 - m20) / r)
+    else:
+        r = math.sqrt(1.0 - m00 - m11 + m22)
+        q = (0.5 * (m02 + m20) / r, 0.5 * (m12 + m21) / r, 0.5 * r, 0.5 * (m10 - m01) / r)
+    out = np.array(q)
+    out /= np.linalg.norm(out)
+    return -out if out[3] < 0 else out
+
+
+def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation matrix of a rotation vector (rad)."""
+    x, y, z = (float(c) for c in rv)
+    a = math.sqrt(x * x + y * y + z * z)
+    if a < 1e-12:
+        return np.eye(3)
+    kx, ky, kz = x / a, y / a, z / a
+    K = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    return np.eye(3) + math.sin(a) * K + (1.0 - math.cos(a)) * (K @ K)

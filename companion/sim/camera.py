@@ -1,0 +1,159 @@
+"""Geometric camera: a circular gate seen from the vehicle's true pose -> pixel bounding box.
+
+The gate rim (a circle of radius r in the gate plane) is sampled and projected through the
+camera model (intrinsics, distortion, mount); the box is the rim's pixel extent clipped to the
+image, as a detector would box a partly visible ring. No box when the gate centre is behind the
+camera or outside the image, when the box is smaller than ``min_box`` pixels, or when the frame
+is dropped. Pixel noise is added to the box centre and size. Latency is the runner's job (it
+delivers the box of a frame captured at t at t + delay).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from companion.frames import F_FRD_FLU
+from perception.los import CameraModel
+from perception.types import BoundingBox
+
+_N_RIM = 32  # rim samples; the box of a 32-gon is within 0.5 % of the circle's
+
+
+_ANG = np.linspace(0.0, 2 * math.pi, _N_RIM, endpoint=False)
+_COS_SIN = np.column_stack((np.cos(_ANG), np.sin(_ANG)))
+
+
+@lru_cache(maxsize=64)
+def _rim_basis(normal: tuple[float, float, float]) -> np.ndarray:
+    """(2, 3): two unit vectors spanning the gate plane."""
+    nrm = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    a = np.array([0.0, 0.0, 1.0]) if abs(nrm[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(nrm, a)
+    u /= np.linalg.norm(u)
+    return np.vstack((u, np.cross(nrm, u)))
+
+
+def rim_points(centre: np.ndarray, normal: np.ndarray, radius: float) -> np.ndarray:
+    """_N_RIM points on the circle (world frame), shape (n, 3)."""
+    basis = _rim_basis(tuple(float(c) for c in normal))
+    return centre + radius * (_COS_SIN @ basis)
+
+
+def _ratio_extremes(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float) -> tuple[float, float]:
+    """min and max over theta of (a0 + a1 cos + a2 sin) / (b0 + b1 cos + b2 sin), denominator > 0.
+
+    The derivative vanishes where P sin + Q cos + S = 0 with P = a0 b1 - a1 b0,
+    Q = a2 b0 - a0 b2, S = a2 b1 - a1 b2: two angles theta = phi +- acos(-S / hypot(P, Q)).
+    """
+    p, q, s = a0 * b1 - a1 * b0, a2 * b0 - a0 * b2, a2 * b1 - a1 * b2
+    h = math.hypot(p, q)
+    if h < 1e-15:
+        v = a0 / b0
+        return v, v
+    phi = math.atan2(p, q)  # P sin + Q cos = h cos(theta - phi)
+    d = math.acos(max(-1.0, min(1.0, -s / h)))
+    vals = []
+    for th in (phi + d, phi - d):
+        ct, st = math.cos(th), math.sin(th)
+        vals.append((a0 + a1 * ct + a2 * st) / (b0 + b1 * ct + b2 * st))
+    return min(vals), max(vals)
+
+
+class GeometricCamera:
+    """Projects a gate with the vehicle's *true* pose (ENU position, xyzw FLU->ENU attitude)."""
+
+    def __init__(
+        self,
+        model: CameraModel,
+        pixel_noise: float = 0.0,
+        drop_prob: float = 0.0,
+        min_box: float = 2.0,
+        rng: np.random.Generator | None = None,
+    ) -> None:
+        self.model = model
+        self.pixel_noise = float(pixel_noise)
+        self.drop_prob = float(drop_prob)
+        self.min_box = float(min_box)
+        self.rng = rng if rng is not None else np.random.default_rng(0)
+        # camera (OpenCV) -> body FLU, fixed: body FRD -> FLU is F_FRD_FLU (self-inverse).
+        self._R_flu_cam = F_FRD_FLU @ model.R_body_cam
+        self._distorted = bool(model.dist.size and np.any(model.dist != 0.0))
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (n, 2) of camera-frame points with z > 0."""
+        if self._distorted:
+            img, _ = cv2.projectPoints(points_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                       self.model.K, self.model.dist)
+            return img.reshape(-1, 2)
+        K = self.model.K
+        xy = points_cam[:, :2] / points_cam[:, 2:3]
+        return xy @ K[:2, :2].T + K[:2, 2]
+
+    def to_camera(self, points_world: np.ndarray, p_enu: np.ndarray, R_enu_flu: np.ndarray) -> np.ndarray:
+        """World ENU points (n, 3) -> camera OpenCV frame (n, 3)."""
+        R_cam_world = (R_enu_flu @ self._R_flu_cam).T
+        return (points_world - p_enu) @ R_cam_world.T
+
+    def box_exact(
+        self, p_enu: np.ndarray, R_enu_flu: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: float,
+        t: float = 0.0,
+    ) -> BoundingBox | None:
+        """Noise-free box of the gate, or None when it is not (usefully) in view."""
+        m = self.model
+        R_cam_world = (R_enu_flu @ self._R_flu_cam).T
+        c = R_cam_world @ (centre - p_enu)
+        if c[2] <= 1e-3:
+            return None
+        ab = (radius * _rim_basis(tuple(float(x) for x in normal))) @ R_cam_world.T  # rim = c + a cos + b sin
+        a, b = ab[0], ab[1]
+        K = m.K
+        if not self._distorted and K[0, 1] == 0.0 and c[2] - math.hypot(a[2], b[2]) > 1e-3:
+            # Whole ring in front of an undistorted camera: exact extent of the projected circle.
+            fx, cx, fy, cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
+            cz, az, bz = float(c[2]), float(a[2]), float(b[2])
+            cu = fx * float(c[0]) / cz + cx
+            cv = fy * float(c[1]) / cz + cy
+            if not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
+                return None  # the FOV check: the gate centre must be in the image
+            u0, u1 = _ratio_extremes(fx * float(c[0]) + cx * cz, fx * float(a[0]) + cx * az,
+                                     fx * float(b[0]) + cx * bz, cz, az, bz)
+            v0, v1 = _ratio_extremes(fy * float(c[1]) + cy * cz, fy * float(a[1]) + cy * az,
+                                     fy * float(b[1]) + cy * bz, cz, az, bz)
+        else:
+            rim = c + _COS_SIN @ ab  # sampled rim, camera frame
+            front = rim[rim[:, 2] > 1e-3]  # rim points behind the camera: the ring is being passed
+            if front.shape[0] < 3:
+                return None
+            px = self.project(np.vstack((c[None, :], front)))
+            cu, cv = float(px[0, 0]), float(px[0, 1])
+            if not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
+                return None
+            lo, hi = px[1:].min(axis=0), px[1:].max(axis=0)
+            u0, v0, u1, v1 = float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+        x0, y0 = max(0.0, u0), max(0.0, v0)
+        x1, y1 = min(float(m.width), u1), min(float(m.height), v1)
+        if x1 - x0 < self.min_box or y1 - y0 < self.min_box:
+            return None
+        return BoundingBox.from_xyxy(x0, y0, x1, y1, 1.0, t)
+
+    def capture(
+        self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray, centre: np.ndarray, normal: np.ndarray,
+        radius: float,
+    ) -> BoundingBox | None:
+        """One frame: exact box + drop + pixel noise (noise keeps the box inside the image)."""
+        if self.drop_prob > 0.0 and self.rng.random() < self.drop_prob:
+            return None
+        box = self.box_exact(p_enu, R_enu_flu, centre, normal, radius, t)
+        if box is None or self.pixel_noise <= 0.0:
+            return box
+        n = self.rng.normal(0.0, self.pixel_noise, 4)
+        m = self.model
+        cx = min(max(box.cx + n[0], 0.0), float(m.width))
+        cy = min(max(box.cy + n[1], 0.0), float(m.height))
+        w = max(box.w + n[2], 1.0)
+        h = max(box.h + n[3], 1.0)
+        return BoundingBox(cx, cy, w, h, 1.0, t)
