@@ -53,7 +53,8 @@ TOPICS: dict[str, tuple[str, ...]] = {
     "setpoints": (
         "t", "t_frame", "state", "ctrl_mode", "roll_deg", "pitch_deg", "yaw_deg", "thrust", "latency_ms",
     ),
-    "gate": ("t", "gate_n", "gate_e", "gate_d", "visible"),  # synthetic camera only: the virtual gate
+    # Synthetic camera only: the virtual gate in view (centre, plane normal, radius), NED.
+    "gate": ("t", "gate_n", "gate_e", "gate_d", "normal_n", "normal_e", "normal_d", "radius", "visible"),
 }
 IMMEDIATE = frozenset({"states", "events"})  # rare and precious: straight to the OS
 
@@ -306,3 +307,46 @@ def latest_flight(directory: str | Path) -> Path | None:
         return None
     folders = [p for p in base.iterdir() if (p / "meta.json").exists()]
     return max(folders, key=lambda p: p.stat().st_mtime_ns, default=None)
+
+
+@dataclass(frozen=True)
+class Crossing:
+    t: float  # flight time of the crossing, s
+    d_center: float  # distance from the gate centre in the gate plane, m
+    radius: float  # gate radius, m
+
+    @property
+    def through(self) -> bool:
+        return self.d_center < self.radius
+
+
+def gate_crossings(flight: Flight) -> list[Crossing]:
+    """Where the logged vehicle position (truth topic) crossed the logged virtual gate's plane.
+
+    Scoring only (synthetic-camera flights): the gate centre is interpolated to the truth samples,
+    the crossing time is where the signed distance along the normal changes sign (+ -> -).
+    """
+    gate, truth = flight.tables.get("gate"), flight.tables.get("truth")
+    if gate is None or truth is None or len(gate) < 2 or len(truth) < 2:
+        return []
+    g_ok = np.isfinite(gate["gate_n"])
+    gt = gate["t"][g_ok]
+    if len(gt) < 2:
+        return []
+    tt = truth["t"]
+    sel = (tt >= gt[0]) & (tt <= gt[-1])
+    tt = tt[sel]
+    p = np.column_stack([truth[c][sel] for c in ("n", "e", "d")])
+    c = np.column_stack([np.interp(tt, gt, gate[k][g_ok]) for k in ("gate_n", "gate_e", "gate_d")])
+    nrm = np.column_stack([np.interp(tt, gt, gate[k][g_ok]) for k in ("normal_n", "normal_e", "normal_d")])
+    rad = np.interp(tt, gt, gate["radius"][g_ok])
+    r = p - c
+    s = np.einsum("ij,ij->i", r, nrm)
+    out: list[Crossing] = []
+    for i in np.flatnonzero((s[:-1] > 0) & (s[1:] <= 0)):
+        a = s[i] / (s[i] - s[i + 1])
+        ri = r[i] + a * (r[i + 1] - r[i])
+        ni = nrm[i]
+        lateral = ri - (ri @ ni) * ni
+        out.append(Crossing(float(tt[i] + a * (tt[i + 1] - tt[i])), float(np.linalg.norm(lateral)), float(rad[i])))
+    return out

@@ -39,6 +39,28 @@ class SafetyConfig(Section):
     )
 
 
+class SyntheticCameraConfig(Section):
+    """Virtual gates seen from the vehicle pose that arrives over MAVLink (sensor simulation only).
+
+    The scene is anchored at the first frame: gate k (k = 1..count) is placed k * distance ahead of
+    the vehicle along its heading. Noise, drops and minimum box size come from ``sim.camera``.
+    """
+
+    render: Literal["geometric", "image"] = Field(
+        "image", description="geometric: projected box; image: rendered frames through the detector"
+    )
+    motion: Literal["stationary", "linear_slow", "linear_fast", "planar", "knot"] = "linear_fast"
+    distance: Meters = Field(25.0, gt=1.0, le=500.0, description="m from the vehicle to the first gate")
+    lateral_offset: Meters = Field(0.0, ge=-100.0, le=100.0, description="m, to the right of the heading")
+    height_offset: Meters = Field(0.0, ge=-50.0, le=50.0, description="m above the vehicle")
+    radius: Meters = Field(1.0, gt=0.05, le=20.0, description="visual gate radius, m")
+    count: int = Field(1, ge=1, le=20, description="gates in a row")
+    fault: Literal["none", "stall", "nan_box", "los_jump", "lose_target"] = Field(
+        "none", description="test switch: camera/perception fault injected after fault_after"
+    )
+    fault_after: Seconds = Field(1.0, ge=0.0, le=600.0, description="s after the first frame")
+
+
 class AppConfig(Section):
     """State machine behaviour."""
 
@@ -70,11 +92,7 @@ class AppConfig(Section):
     camera: Literal["source", "synthetic"] = Field(
         "source", description="source: the perception camera source; synthetic: render from the vehicle pose"
     )
-    synthetic_render: Literal["geometric", "image"] = Field(
-        "image", description="synthetic camera: geometric box only, or rendered frames through the detector"
-    )
-    gate_distance: Meters = Field(25.0, gt=1.0, le=500.0, description="synthetic camera: gate distance, m")
-    gate_offset: Meters = Field(0.0, ge=-100.0, le=100.0, description="synthetic camera: lateral offset, m")
+    synthetic: SyntheticCameraConfig = SyntheticCameraConfig()
     status_interval: Seconds = Field(0.5, gt=0.0, le=60.0, description="s between status lines")
 
 

@@ -1,0 +1,519 @@
+"""The flight: camera -> perception -> LOS filter -> controller -> setpoint, under one state machine.
+
+Read ``FlightApp._frame`` top to bottom for the data path of one frame; ``_sequence`` for the
+order of a flight; ``_safe_end`` for what every fault does. Around the sequence run three
+monitors: telemetry (logs it; detects link loss and pilot takeover), the watchdog (no fresh
+setpoint while we own the vehicle -> hand over to HOLD; MAVSDK would otherwise resend the last
+setpoint forever) and the status line / systemd notifications.
+
+Any fault calls ``trip(reason, detail)``: the first one wins, the sequence task is cancelled and
+``_safe_end`` brings the vehicle to one named safe state (companion/app/states.py), logged
+with its reason. Vehicle position/velocity is only logged (truth topic), never used here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, TextIO
+
+import numpy as np
+
+from companion.app import link as linkmod
+from companion.app.notify import Notifier
+from companion.app.safety import Abort, CloseDetector, SafetyLimits, mode_is_pilot
+from companion.app.states import Reason, State, StateMachine, Transition
+from companion.app.synthcam import CameraSource, Frame, Perception
+from companion.controller import ControlOutput, PNController
+from companion.flightlog import FlightLog
+from companion.frames import euler_ned_deg_from_R
+from companion.guidance import Setpoint, hover_setpoint
+
+if TYPE_CHECKING:
+    from companion.config import Config
+
+GROUND_STATES = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
+PASS_GONE_FRAMES = 3  # frames without the gate after "close": it has left the view (passed)
+
+
+class _Tripped(Exception):
+    """Raised inside the sequence for an abort it finds itself (safety limit, no target)."""
+
+    def __init__(self, abort: Abort) -> None:
+        super().__init__(abort.detail)
+        self.abort = abort
+
+
+@dataclass
+class FlightStats:
+    latencies_ms: list[float] = field(default_factory=list)  # frame available -> setpoint sent
+    frames: int = 0
+    setpoints: int = 0
+    gates_passed: int = 0
+    cpu_s: float = 0.0
+    wall_s: float = 0.0
+
+
+class FlightApp:
+    def __init__(
+        self,
+        cfg: Config,
+        link: Any,
+        camera: CameraSource,
+        perception: Perception,
+        log: FlightLog,
+        *,
+        notifier: Notifier | None = None,
+        stderr: TextIO | None = sys.stderr,
+        status_line: bool = False,
+        perception_in_thread: bool = False,
+    ) -> None:
+        self.cfg = cfg
+        self.link = link
+        self.camera = camera
+        self.perception = perception
+        self.log = log
+        self.notifier = notifier or Notifier(address="")
+        self.stderr = stderr
+        self.status_line = status_line
+        self.perception_in_thread = perception_in_thread
+        self.clock = time.monotonic
+        self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=stderr)
+        self.ctrl = PNController.from_config(cfg)
+        self.width, self.height = cfg.camera.width, cfg.camera.height
+        self.close_det = CloseDetector(cfg.app, self.width)
+        self.limits = SafetyLimits(cfg.safety)
+        self.stats = FlightStats()
+        self._fault: Abort | None = None
+        self._seq: asyncio.Task[None] | None = None
+        self._last_setpoint = math.inf  # clock time of the last fresh setpoint (inf: none owed)
+        self._baro0: float | None = None
+        self._connected = False
+        self._last_out: ControlOutput | None = None
+        self._status = ""
+
+    # ------------------------------------------------------------------------------ public
+    def trip(self, reason: Reason, detail: str) -> None:
+        """Report a fault (from a monitor, a signal handler, ...). The first one wins."""
+        if self._fault is not None or self.sm.done:
+            return
+        self._fault = Abort(reason, detail)
+        self.log.event(f"fault {reason.name}: {detail}", "error")
+        if self._seq is not None and not self._seq.done():
+            self._seq.cancel()
+
+    def on_link_event(self, kind: str, detail: dict[str, Any]) -> None:
+        """Every link event goes to the log; the ones that end a flight trip the state machine."""
+        self.log.event(f"link {kind} {detail}" if detail else f"link {kind}", "warn" if kind in (
+            "watchdog", "offboard_lost", "link_lost", "close_leaked", "telemetry_error") else "info")
+        if kind == "watchdog":  # the link's own setpoint watchdog fired: our control output stopped
+            self.trip(Reason.PERCEPTION_STALL, f"link watchdog: no fresh setpoint for {detail.get('age', 0):.2f} s")
+        elif kind == "offboard_lost":  # PX4 left OFFBOARD by itself: the pilot (or a PX4 failsafe) has it
+            self.trip(Reason.PILOT_TAKEOVER, f"vehicle left OFFBOARD for {detail.get('mode')}")
+        elif kind == "link_lost":
+            self.trip(Reason.LINK_LOST, f"no telemetry for {detail.get('age', 0):.1f} s")
+
+    async def run(self) -> Reason:
+        cpu0, wall0 = time.process_time(), self.clock()
+        monitors = [asyncio.create_task(self._monitor(), name="telemetry-monitor"),
+                    asyncio.create_task(self._watchdog(), name="watchdog"),
+                    asyncio.create_task(self._status_loop(), name="status")]
+        self.notifier.ready("connecting")
+        self._seq = asyncio.create_task(self._sequence(), name="flight-sequence")
+        try:
+            await self._seq
+        except asyncio.CancelledError:
+            if self._fault is None:  # cancelled from outside (not by trip): treat as a signal
+                self._fault = Abort(Reason.SIGNAL, "flight task cancelled")
+        except _Tripped as e:
+            self._fault = self._fault or e.abort
+        except Exception as e:  # (any exception ends in a safe state, with its text)
+            self._fault = self._fault or self._classify(e)
+        if not self.sm.done:
+            fault = self._fault or Abort(Reason.EXCEPTION, "flight sequence ended without a safe state")
+            self.log.event(f"safe end from {self.sm.state.value}: {fault.reason.name}", "error")
+            try:
+                await asyncio.wait_for(self._safe_end(fault), self.cfg.link.command_timeout * 3 + 5.0)
+            except Exception as e:
+                await self._last_resort(fault, e)
+        self.notifier.stopping(self._status_text())
+        for m in monitors:
+            m.cancel()
+        await asyncio.gather(*monitors, return_exceptions=True)
+        self.camera.close()
+        self.stats.cpu_s = time.process_time() - cpu0
+        self.stats.wall_s = self.clock() - wall0
+        assert self.sm.outcome is not None
+        return self.sm.outcome
+
+    def summary(self) -> dict[str, Any]:
+        lat = np.array(self.stats.latencies_ms) if self.stats.latencies_ms else np.array([math.nan])
+        last = self.sm.history[-1] if self.sm.history else None
+        return {
+            "outcome": self.sm.state.value,
+            "reason": self.sm.outcome.name if self.sm.outcome is not None else None,
+            "exit_code": int(self.sm.outcome) if self.sm.outcome is not None else None,
+            "detail": last.reason if last else "",
+            "gates_passed": self.stats.gates_passed,
+            "frames": self.stats.frames,
+            "setpoints": self.stats.setpoints,
+            "frame_to_setpoint_ms": {"p50": float(np.nanpercentile(lat, 50)), "p95": float(np.nanpercentile(lat, 95)),
+                                     "n": len(self.stats.latencies_ms)},
+            "cpu_percent": 100.0 * self.stats.cpu_s / self.stats.wall_s if self.stats.wall_s > 0 else None,
+            "states": [h.dst.value for h in self.sm.history],
+        }
+
+    # ------------------------------------------------------------------------------ sequence
+    async def _sequence(self) -> None:
+        cfg = self.cfg
+        self.sm.go(State.CONNECT, f"connecting to {cfg.link.url}")
+        await self.link.connect()
+        self._connected = True
+        self.sm.go(State.PREFLIGHT, "autopilot found")
+        await self.link.wait_healthy()
+        hover = await self.link.hover_thrust()
+        if hover is not None and 0.05 < hover < 0.95:
+            self.ctrl = self.ctrl.with_hover_thrust(hover, cfg.airframe.thrust_to_weight)
+            self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
+        self._baro0 = self._baro_raw()  # on the ground: the altitude floor is above this
+        if cfg.app.start == "takeoff":
+            self.sm.go(State.ARM, "preflight checks passed")
+            await self.link.arm()
+            self.sm.go(State.TAKEOFF, f"armed; take-off to {cfg.app.takeoff_altitude:.1f} m")
+            await self.link.takeoff(cfg.app.takeoff_altitude)
+            self.sm.go(State.ACQUIRE, "take-off done, PX4 holds")
+        else:
+            self.sm.go(State.WAIT_PILOT, "waiting for the pilot to hover")
+            await self._wait_pilot_hover()
+            self.sm.go(State.ACQUIRE, "pilot hovers armed in the air")
+        await self._fly()
+
+    async def _wait_pilot_hover(self) -> None:
+        deadline = self.clock() + self.cfg.app.pilot_wait_timeout
+        link = self.link
+        while not (link.armed and link.landed_state == "IN_AIR"):
+            if self.clock() > deadline:
+                raise _Tripped(Abort(Reason.NO_TARGET, "the pilot did not take off in time"))
+            await asyncio.sleep(0.1)
+        self._baro0 = self._baro0 if self._baro0 is not None else self._baro_raw()
+
+    async def _fly(self) -> None:
+        """The frame loop: ACQUIRE -> ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK -> LAND."""
+        app = self.cfg.app
+        acquire_start = self.clock()
+        streak = 0  # consecutive valid boxes
+        while True:
+            frame = await self.camera.read()
+            t_avail = self.clock()
+            box = await self._perceive(frame)
+            valid = box is not None and box.is_valid(self.width, self.height)
+            streak = streak + 1 if valid else 0
+            self.stats.frames += 1
+            self._log_detection(frame, box, valid)
+            st = self.sm.state
+            if st is State.ACQUIRE:
+                if streak >= app.acquire_frames:
+                    await self._engage(frame, box, t_avail, f"stable track for {streak} frames")
+                elif self.clock() - acquire_start > app.acquire_timeout:
+                    await self._land_normally(Reason.NO_TARGET,
+                                              f"no stable track within {app.acquire_timeout:.1f} s", State.LAND)
+                    return
+                continue
+            if st is State.RECOVER and self.clock() - self._recover_start >= app.recover_time:
+                if app.next_gate and streak >= app.acquire_frames and self.stats.gates_passed < app.max_gates:
+                    await self._engage(frame, box, t_avail, f"next gate tracked for {streak} frames")
+                    continue
+                await self._land_normally(Reason.OK, f"{self.stats.gates_passed} gate(s) passed; no next gate",
+                                          State.HANDBACK)
+                return
+            await self._frame(frame, box, valid, t_avail)
+
+    async def _frame(self, frame: Frame, box: Any, valid: bool, t_avail: float) -> None:
+        """One frame while we own the vehicle: controller, safety, pass detection, setpoint, log."""
+        st = self.sm.state
+        q = self.link.attitude.q_wxyz  # PX4's attitude estimate (IMU), NED/FRD
+        out = self.ctrl.step(frame.t, box, q)
+        self._last_out = out
+        now = self.clock()
+        if out.mode == "pn":
+            self._last_valid = now
+        baro = self._baro_rel()
+        if st is State.ENGAGE:
+            abort = self.limits.check(now, self._engage_start, self._last_valid, baro)
+            if abort is not None:
+                raise _Tripped(abort)
+            est = self.close_det.update(frame.t, box, out.mode == "pn")
+            sp = out.setpoint
+            if est.close:
+                if self.cfg.app.on_close == "fly_through":
+                    self._pass_start, self._pass_sp, self._gone = now, out.setpoint, 0
+                    self.sm.go(State.PASS, f"gate close: {est.why}")
+                else:
+                    self._start_recover(f"pull-up: {est.why}")
+                    sp = self._recover_sp
+        elif st is State.PASS:
+            sp = self._pass_sp  # hold the attitude that points at the gate until it is behind us
+            self._gone = 0 if valid else self._gone + 1
+            if self._gone >= PASS_GONE_FRAMES or now - self._pass_start > self.cfg.app.pass_timeout:
+                self.stats.gates_passed += 1
+                why = "gate left the view" if self._gone >= PASS_GONE_FRAMES else "pass timeout"
+                self._start_recover(f"gate {self.stats.gates_passed} passed ({why})")
+                sp = self._recover_sp
+        else:  # RECOVER
+            sp = self._recover_sp
+        if baro is not None and baro < self.cfg.safety.altitude_floor and st is not State.ENGAGE:
+            raise _Tripped(Abort(Reason.ALTITUDE_FLOOR, f"barometric altitude {baro:.1f} m below the floor "
+                                 f"{self.cfg.safety.altitude_floor:.1f} m"))
+        await self.link.set_setpoint(sp)
+        t_sent = self.clock()
+        self._last_setpoint = t_sent
+        self.stats.setpoints += 1
+        lat_ms = (t_sent - t_avail) * 1e3
+        self.stats.latencies_ms.append(lat_ms)
+        self._log_control(frame, out, sp, lat_ms)
+
+    async def _engage(self, frame: Frame, box: Any, t_avail: float, why: str) -> None:
+        first = self.sm.state is State.ACQUIRE
+        self.ctrl.reset()
+        self.close_det.reset()
+        self._engage_start = self._last_valid = self.clock()
+        self.sm.go(State.ENGAGE, why)
+        if first:
+            out = self.ctrl.step(frame.t, box, self.link.attitude.q_wxyz)
+            # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
+            # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
+            await self.link.start_offboard(out.setpoint)
+            self._last_setpoint = self.clock()
+            # Logged, but not a latency sample: it includes PX4's mode switch, once per flight.
+            self._log_control(frame, out, out.setpoint, (self._last_setpoint - t_avail) * 1e3)
+        else:
+            await self._frame(frame, box, True, t_avail)
+
+    def _start_recover(self, why: str) -> None:
+        yaw = euler_ned_deg_from_R(self.link.attitude.R_ned_frd)[2]
+        thrust = min(1.0, self.ctrl.p.hover_thrust * self.cfg.app.recover_thrust_scale)
+        self._recover_sp = hover_setpoint(yaw, thrust)
+        self._recover_start = self.clock()
+        self.sm.go(State.RECOVER, why)
+
+    async def _land_normally(self, reason: Reason, why: str, via: State) -> None:
+        if via is State.HANDBACK:
+            self.sm.go(State.HANDBACK, why)
+            self._last_setpoint = math.inf  # we no longer owe setpoints
+            await self.link.stop_offboard()
+            why = "PX4 holds; landing"
+        self.sm.go(State.LAND, why)
+        await self.link.land()
+        await self.link.wait_landed_and_disarm()
+        self.sm.go(State.SAFE_LANDED, "landed and disarmed", reason)
+
+    async def _perceive(self, frame: Frame) -> Any:
+        if self.perception_in_thread:
+            # The detector releases the GIL; running it in a thread keeps the monitors responsive.
+            return await asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame)
+        return self.perception.process(frame)
+
+    def _baro_raw(self) -> float | None:
+        b = self.link.baro
+        return None if b is None else b.altitude_raw_m
+
+    def _baro_rel(self) -> float | None:
+        b = self._baro_raw()
+        if b is None or self._baro0 is None or not math.isfinite(b):
+            return None
+        return b - self._baro0
+
+    # ------------------------------------------------------------------------------ safe ends
+    async def _safe_end(self, fault: Abort) -> None:
+        st, r, d = self.sm.state, fault.reason, fault.detail
+        self._last_setpoint = math.inf  # the watchdog has nothing more to guard
+        if r is Reason.PILOT_TAKEOVER:
+            # The link already stopped commanding (no mode change of ours, never offboard again);
+            # closing it ends MAVSDK's resending too.
+            await self.link.close()
+            self.sm.go(State.SAFE_PILOT, d + "; we stopped commanding", r)
+            return
+        if r is Reason.LINK_LOST:
+            await self.link.close()
+            self.sm.go(State.SAFE_FAILSAFE_LINK, d + "; streaming stopped, PX4's own failsafe acts", r)
+            return
+        if st in GROUND_STATES:
+            self.sm.go(State.ABORT_NOT_ARMED, d, r)
+            return
+        if st.offboard:
+            self.sm.go(State.HANDBACK, d)
+            try:
+                await self.link.stop_offboard()
+            except Exception as e:
+                # PX4 did not confirm HOLD: stop MAVSDK's resending so PX4's offboard-loss failsafe acts.
+                await self.link.close()
+                self.sm.go(State.SAFE_FAILSAFE_LINK, f"{d}; offboard stop failed ({e}): streaming stopped", r)
+                return
+            st = State.HANDBACK
+        if self.cfg.safety.land_after_abort and st is not State.LAND:
+            if st is not State.HANDBACK:
+                self.sm.go(State.HANDBACK, d)
+            self.sm.go(State.LAND, d + "; land_after_abort")
+            await self.link.land()
+            await self.link.wait_landed_and_disarm()
+            self.sm.go(State.SAFE_LANDED, d, r)
+            return
+        if st is State.LAND:
+            self.sm.go(State.SAFE_LANDED if self.link.armed is False else State.SAFE_HOLD,
+                       d + "; PX4 continues its landing", r)
+            return
+        self.sm.go(State.SAFE_HOLD, d + "; PX4 holds", r)
+
+    async def _last_resort(self, fault: Abort, err: BaseException) -> None:
+        """The safe end itself failed: stop streaming (PX4's failsafe acts) and name that state."""
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self.link.close(), 10.0)
+        detail = f"{fault.detail}; safe end failed ({type(err).__name__}: {err}): streaming stopped"
+        if self.sm.done:
+            return
+        if self.sm.state in GROUND_STATES:
+            self.sm.go(State.ABORT_NOT_ARMED, detail, fault.reason)
+        else:
+            self.sm.go(State.SAFE_FAILSAFE_LINK, detail, fault.reason)
+
+    def _classify(self, e: BaseException) -> Abort:
+        text = f"{type(e).__name__}: {e}"
+        table: list[tuple[str, Reason]] = [
+            ("ArmDenied", Reason.ARM_DENIED), ("OffboardDenied", Reason.OFFBOARD_DENIED),
+            ("CommandTimeout", Reason.COMMAND_TIMEOUT), ("LinkLost", Reason.LINK_LOST),
+            ("ConnectFailed", Reason.CONNECT_FAILED), ("PreflightFailed", Reason.PREFLIGHT_FAILED),
+            ("NotHealthy", Reason.PREFLIGHT_FAILED), ("TakeoffFailed", Reason.COMMAND_TIMEOUT),
+            ("OffboardLost", Reason.PILOT_TAKEOVER), ("CommandDenied", Reason.COMMAND_TIMEOUT),
+        ]
+        for name, reason in table:
+            exc = getattr(linkmod, name, None)
+            if isinstance(exc, type) and isinstance(e, exc):
+                return Abort(reason, text)
+        if isinstance(e, (TimeoutError, ConnectionError)) and self.sm.state is State.CONNECT:
+            return Abort(Reason.CONNECT_FAILED, text)
+        if isinstance(e, TimeoutError):
+            return Abort(Reason.COMMAND_TIMEOUT, text)
+        return Abort(Reason.EXCEPTION, text)
+
+    # ------------------------------------------------------------------------------ monitors
+    async def _monitor(self) -> None:
+        """Telemetry to the log at 20 Hz; pilot takeover while PX4 flies its own modes for us.
+
+        Link loss, the link's setpoint watchdog and PX4 leaving OFFBOARD arrive as link events
+        (``on_link_event``); the link also refuses setpoints after any of them.
+        """
+        while not self.sm.done:
+            await asyncio.sleep(0.05)
+            if not self._connected:
+                continue
+            self._log_telemetry()
+            st, mode = self.sm.state, self.link.flight_mode
+            if not self.link.link_ok and not st.terminal:
+                self.trip(Reason.LINK_LOST, f"no telemetry for {self.link.telemetry_age:.1f} s")
+            elif st is State.ACQUIRE and self.cfg.app.start == "takeoff" and mode and mode_is_pilot("takeoff", mode):
+                self.trip(Reason.PILOT_TAKEOVER, f"flight mode changed to {mode} during {st.value}")
+
+    async def _watchdog(self) -> None:
+        """No fresh setpoint while we own the vehicle -> hand over (MAVSDK keeps resending the old one)."""
+        limit = self.cfg.safety.perception_stall_timeout
+        while not self.sm.done:
+            await asyncio.sleep(min(0.05, limit / 4))
+            if self.sm.state.offboard and self._fault is None:
+                age = self.clock() - self._last_setpoint
+                if age > limit:
+                    self.trip(Reason.PERCEPTION_STALL,
+                              f"watchdog: no fresh setpoint for {age:.2f} s (limit {limit:.2f} s)")
+
+    async def _status_loop(self) -> None:
+        wd = Notifier.watchdog_interval()
+        period = min(self.cfg.app.status_interval, wd) if wd else self.cfg.app.status_interval
+        next_status = 0.0
+        while True:
+            self.notifier.watchdog()  # proves the event loop runs; systemd kills us if it stops
+            now = self.clock()
+            if now >= next_status:
+                next_status = now + self.cfg.app.status_interval
+                text = self._status_text()
+                self.notifier.status(text)
+                if self.status_line and self.stderr is not None:
+                    self.stderr.write("\r\x1b[K" + text)
+                    self.stderr.flush()
+            if self.sm.done:
+                if self.status_line and self.stderr is not None:
+                    self.stderr.write("\n")
+                return
+            await asyncio.sleep(period)
+
+    def _status_text(self) -> str:
+        parts = [f"t={self.log.now():5.1f}s", self.sm.state.value]
+        if self._connected:
+            parts.append(f"mode={self.link.flight_mode}")
+            b = self._baro_rel()
+            if b is not None:
+                parts.append(f"alt={b:5.1f}m")
+        out = self._last_out
+        if out is not None and self.sm.state.offboard:
+            parts.append(f"ctrl={out.mode} thr={out.setpoint.thrust:.2f} ldot={out.lambda_dot:+.2f}")
+        if self.stats.latencies_ms:
+            parts.append(f"lat_p50={np.median(self.stats.latencies_ms[-60:]):.1f}ms")
+        parts.append(f"gates={self.stats.gates_passed}")
+        return " ".join(parts)
+
+    # ------------------------------------------------------------------------------ logging
+    def _on_transition(self, tr: Transition) -> None:
+        self.log.state(tr.src.value, tr.dst.value, tr.reason, t=tr.t)
+        self.notifier.status(f"{tr.dst.value}: {tr.reason}")
+
+    def _log_detection(self, frame: Frame, box: Any, valid: bool) -> None:
+        t_frame = frame.t - self.log.t0
+        if box is None:
+            self.log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
+        else:
+            self.log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
+                           h=box.h, confidence=box.confidence, valid=valid)
+
+    def _log_control(self, frame: Frame, out: ControlOutput, sp: Setpoint, lat_ms: float) -> None:
+        t_frame = frame.t - self.log.t0
+        los = out.los_ned if out.los_ned is not None else (None, None, None)
+        self.log.write("los", t_frame=t_frame, los_n=los[0], los_e=los[1], los_d=los[2],
+                       lambda_dot=out.lambda_dot, a_n=float(np.linalg.norm(out.a_n)),
+                       demand_scale=out.demand_scale, rejected=out.rejected or "")
+        self.log.write("setpoints", t_frame=t_frame, state=self.sm.state.value, ctrl_mode=out.mode,
+                       roll_deg=sp.roll_deg, pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg, thrust=sp.thrust,
+                       latency_ms=lat_ms)
+
+    def _log_telemetry(self) -> None:
+        link = self.link
+        att = link.attitude
+        q = att.q_wxyz if att is not None else (None,) * 4
+        r = p = y = None
+        if att is not None:
+            r, p, y = euler_ned_deg_from_R(att.R_ned_frd)
+        self.log.write("telemetry", t_att=att.t_rx - self.log.t0 if att is not None else None,
+                       qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
+                       baro_alt_m=self._baro_raw(), flight_mode=link.flight_mode, armed=link.armed,
+                       landed_state=link.landed_state)
+        truth = link.truth_for_log  # log only: scoring and plots, never an input of the controller
+        if truth is not None:
+            pn, vn = truth.position_ned, truth.velocity_ned
+            self.log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
+
+
+def gate_logger(log: FlightLog) -> Callable[[Any, np.ndarray | None, float, bool], None]:
+    """Callback for the synthetic camera: log the virtual gate in view (scene ENU -> NED). Scoring only."""
+    from companion.frames import enu_to_ned
+
+    def on_gate(gate: Any, c_enu: np.ndarray | None, radius: float, visible: bool) -> None:
+        if gate is None or c_enu is None:
+            log.write("gate", visible=False)
+            return
+        c, n = enu_to_ned(c_enu), enu_to_ned(gate.normal)
+        log.write("gate", gate_n=c[0], gate_e=c[1], gate_d=c[2], normal_n=n[0], normal_e=n[1], normal_d=n[2],
+                  radius=radius, visible=visible)
+
+    return on_gate

@@ -1,0 +1,236 @@
+"""``companion fly`` (the flight app), ``companion log plot``, and the helpers ``companion sim`` / bench use.
+
+``companion fly`` flies a real vehicle: link URL and camera source from the config. With
+``--synthetic`` (app.camera=synthetic) the camera is simulated from the vehicle pose that
+arrives over MAVLink (hardware-in-the-loop with PX4 SIH/SITL, or the built-in simulated PX4).
+The process exit code is the outcome (companion/app/states.py ``Reason``): 0 = gate(s)
+passed and landed; each fault has its own code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from companion.app.states import Reason
+    from companion.config import Config
+
+
+def register(subparsers: Any) -> None:
+    from companion.config import add_config_arguments
+
+    p = subparsers.add_parser("fly", help="fly through gates: connect, take off, engage, pass, land (logs the flight)",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_config_arguments(p)
+    p.add_argument("--url", help="mavsdk connection URL (overrides link.url)")
+    p.add_argument("--synthetic", action="store_true",
+                   help="synthetic camera from the vehicle pose over MAVLink (app.camera=synthetic)")
+    p.add_argument("--geometric", action="store_true",
+                   help="synthetic camera draws a geometric box instead of images (no detector)")
+    p.add_argument("--log-dir", help="parent folder of the flight log (overrides log.directory)")
+    p.add_argument("--status", action="store_true", help="live status line on stderr")
+    p.add_argument("--no-plot", action="store_true", help="do not write plot.png at the end")
+    p.set_defaults(func=_cmd_fly)
+
+    lp = subparsers.add_parser("log", help="flight logs: plot")
+    lsub = lp.add_subparsers(dest="log_command", required=True, metavar="ACTION")
+    pp = lsub.add_parser("plot", help="plot a flight folder to PNG")
+    pp.add_argument("folder", help="flight folder (or a log directory: its latest flight)")
+    pp.add_argument("-o", "--output", help="PNG path (default FOLDER/plot.png)")
+    pp.set_defaults(func=_cmd_plot)
+
+
+def _overrides(args: argparse.Namespace) -> list[str]:
+    ov = list(getattr(args, "overrides", []) or [])
+    if getattr(args, "url", None):
+        ov.append(f"link.url={args.url}")
+    if getattr(args, "synthetic", False) or getattr(args, "geometric", False):
+        ov.append("app.camera=synthetic")
+    if getattr(args, "geometric", False):
+        ov.append("app.synthetic.render=geometric")
+    if getattr(args, "log_dir", None):
+        ov.append(f"log.directory={args.log_dir}")
+    return ov
+
+
+def _cmd_fly(args: argparse.Namespace) -> int:
+    from companion.config import load_config
+
+    cfg = load_config(args.config, _overrides(args))
+    reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot))
+    print(f"companion: flight log {folder}", file=sys.stderr)
+    return int(reason)
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from companion.app.plot import plot_flight
+    from companion.flightlog import latest_flight
+
+    folder = Path(args.folder)
+    if not (folder / "meta.json").exists():
+        latest = latest_flight(folder)
+        if latest is None:
+            print(f"companion log plot: {folder}: no flight log here", file=sys.stderr)
+            return 1
+        folder = latest
+    out = plot_flight(folder, args.output)
+    print(out)
+    return 0
+
+
+def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
+    """(camera source, perception, run perception in a thread) for the configured camera."""
+    from companion.app.flight import gate_logger
+    from companion.app.synthcam import SyntheticCamera, VehiclePose
+
+    if cfg.app.camera == "synthetic":
+
+        def pose() -> VehiclePose | None:
+            # Sensor simulation only: the pose draws the picture; the controller never sees it.
+            truth, att = link.truth_for_log, link.attitude
+            if truth is None or att is None:
+                return None
+            return VehiclePose(time.monotonic(), truth.position_ned, att.q_wxyz)
+
+        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
+        if cam.render == "geometric":
+            return cam, cam.perception(), False
+        from perception.pipeline import Pipeline
+
+        return cam, cam.perception(Pipeline.from_config(cfg)), True
+    from companion.app.synthcam import PipelinePerception
+    from perception.pipeline import Pipeline
+    from perception.sources import open_source
+
+    return open_source(cfg), PipelinePerception(Pipeline.from_config(cfg)), True
+
+
+async def fly(
+    cfg: Config,
+    *,
+    status_line: bool = False,
+    plot: bool = True,
+    stderr: Any = sys.stderr,
+    handle_signals: bool = True,
+) -> tuple[Reason, Path, dict[str, Any]]:
+    """One flight, start to safe state. Returns (outcome, flight folder, summary)."""
+    from companion.app.flight import FlightApp
+    from companion.app.link import VehicleLink
+    from companion.app.notify import Notifier
+    from companion.app.states import Reason
+    from companion.config import config_as_dict
+    from companion.flightlog import FlightLog
+
+    log = FlightLog.create(cfg.log.directory, config_as_dict(cfg), flush_interval=cfg.log.flush_interval)
+    print(f"companion: logging to {log.folder}", file=stderr, flush=True)
+    notifier = Notifier()
+    app: FlightApp | None = None
+    link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
+                                   else log.event(f"link {kind} {detail}"))
+    try:
+        camera, perception, in_thread = build_camera(cfg, link, log)
+        app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
+                        status_line=status_line, perception_in_thread=in_thread)
+        loop = asyncio.get_running_loop()
+        if handle_signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, app.trip, Reason.SIGNAL, f"{signal.Signals(sig).name} received")
+        reason = await app.run()
+        summary = app.summary()
+    except Exception as e:  # (set-up failed before the state machine ran)
+        reason = Reason.CAMERA_FAILED if app is None else Reason.EXCEPTION
+        summary = {"outcome": "ABORT_NOT_ARMED", "reason": reason.name, "exit_code": int(reason),
+                   "detail": f"{type(e).__name__}: {e}"}
+        log.state("INIT", "ABORT_NOT_ARMED", summary["detail"])
+        print(f"companion: set-up failed: {summary['detail']}", file=stderr, flush=True)
+    finally:
+        if handle_signals:
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(link.close(), 10.0)
+        notifier.close()
+    log.close(summary)
+    if plot and cfg.log.plot:
+        try:
+            from companion.app.plot import plot_flight
+
+            plot_flight(log.folder)
+        except Exception as e:  # (a plot must never change the flight's outcome)
+            print(f"companion: plot failed: {type(e).__name__}: {e}", file=stderr)
+    return reason, log.folder, summary
+
+
+# ---------------------------------------------------------------------------- simulated PX4 process
+
+
+class SimPX4Process:
+    """The simulated PX4 in its own process (``python -m companion.sim.px4 --port 0``), for real-time runs."""
+
+    def __init__(self, config_files: list[str] | None = None, overrides: list[str] | None = None,
+                 extra: list[str] | None = None, timeout: float = 20.0) -> None:
+        cmd = [sys.executable, "-m", "companion.sim.px4", "--port", "0"]
+        for f in config_files or []:
+            cmd += ["--config", f]
+        for o in overrides or []:
+            cmd += ["--set", o]
+        cmd += extra or []
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                     bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.port = self._read_port(timeout)
+
+    def _read_port(self, timeout: float) -> int:
+        import selectors
+
+        sel = selectors.DefaultSelector()
+        assert self.proc.stdout is not None
+        sel.register(self.proc.stdout, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not sel.select(timeout=max(0.0, deadline - time.monotonic())):
+                break
+            line = self.proc.stdout.readline()
+            if not line:
+                break
+            if line.startswith("PORT "):
+                return int(line.split()[1])
+        self.stop()
+        raise RuntimeError(f"simulated PX4 did not report its port within {timeout:.0f} s")
+
+    @property
+    def url(self) -> str:
+        return f"udpout://127.0.0.1:{self.port}"
+
+    def command(self, line: str) -> None:
+        """A switch on the sim's stdin (deny_arming 1, drop 1, takeover POSCTL, ...)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=timeout)
+        for f in (self.proc.stdin, self.proc.stdout):
+            with contextlib.suppress(Exception):
+                f.close()
+
+    def __enter__(self) -> SimPX4Process:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -1,0 +1,244 @@
+"""Synthetic camera: what the onboard camera would see, from the vehicle pose that arrives over MAVLink.
+
+SENSOR SIMULATION ONLY. The pose read here (position from LOCAL_POSITION_NED, attitude from
+PX4's estimate) is used to *draw the picture* of virtual gates, as the paper's hardware runs
+did with "simulated gate visuals". It never reaches the controller: the controller sees only
+the box that perception extracts from the frame, exactly as with a real camera.
+
+Two renderings, one interface (``CameraSource.read() -> Frame``, ``Perception.process(frame)``):
+* ``image``: BGR frames from perception/render.py go through the real detector pipeline;
+* ``geometric``: the gate rim projected to a pixel box (companion/sim/camera.py), cheaper, with
+  the simulator's pixel noise and drops; its "perception" just reads that box out of the frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from companion.frames import F_FRD_FLU, R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
+from companion.sim.camera import GeometricCamera
+from companion.sim.gates import GateMotion, make_gate
+from perception.los import CameraModel
+from perception.types import BoundingBox
+
+if TYPE_CHECKING:
+    from companion.config import Config
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera frame. ``image`` for real/rendered frames; ``box`` is set only by the geometric camera."""
+
+    index: int
+    t: float  # capture time, s, on the app's monotonic clock
+    image: np.ndarray | None = None
+    box: BoundingBox | None = None
+
+
+class CameraSource(Protocol):
+    async def read(self) -> Frame: ...
+
+    def close(self) -> None: ...
+
+
+class Perception(Protocol):
+    def process(self, frame: Frame) -> BoundingBox | None: ...
+
+
+@dataclass(frozen=True)
+class VehiclePose:
+    """Pose for sensor simulation: position NED (m) and attitude NED/FRD quaternion (wxyz)."""
+
+    t: float
+    p_ned: np.ndarray
+    q_wxyz: np.ndarray
+
+
+class GeometricPerception:
+    """The geometric camera's frames already carry the box (the projection is the detector)."""
+
+    def process(self, frame: Frame) -> BoundingBox | None:
+        return frame.box
+
+
+class PipelinePerception:
+    """Real perception: detector + tracker + smoothing on the frame's image."""
+
+    def __init__(self, pipeline: Any) -> None:
+        self.pipeline = pipeline
+
+    def process(self, frame: Frame) -> BoundingBox | None:
+        if frame.image is None:
+            return None
+        return self.pipeline.process(frame.image, frame.t)
+
+
+class FaultInjector:
+    """Test switch (app.synthetic.fault): corrupts perception output from ``after`` s past the first frame."""
+
+    def __init__(self, kind: str, after: float, width: int) -> None:
+        self.kind = kind
+        self.after = after
+        self.width = width
+        self.t0: float | None = None
+        self.jumped = 0
+
+    def active(self, t: float) -> bool:
+        if self.kind == "none":
+            return False
+        if self.t0 is None:
+            self.t0 = t
+        return t - self.t0 >= self.after
+
+    def apply(self, t: float, box: BoundingBox | None) -> BoundingBox | None:
+        if not self.active(t):
+            return box
+        if self.kind == "nan_box":
+            return BoundingBox(math.nan, math.nan, math.nan, math.nan, 1.0, t)
+        if self.kind == "lose_target":
+            return None
+        if self.kind == "los_jump" and box is not None and self.jumped < 2:
+            # Two frames of a box on the far side of the image (a tracker switching targets), then back.
+            self.jumped += 1
+            return BoundingBox(self.width - box.cx if abs(self.width / 2 - box.cx) > 150 else
+                               (box.cx + 250) % self.width, box.cy, box.w, box.h, box.confidence, t)
+        return box
+
+
+class InjectedPerception:
+    def __init__(self, inner: Perception, faults: FaultInjector) -> None:
+        self.inner = inner
+        self.faults = faults
+
+    def process(self, frame: Frame) -> BoundingBox | None:
+        return self.faults.apply(frame.t, self.inner.process(frame))
+
+
+class SyntheticScene:
+    """Virtual gates in world ENU, anchored at the vehicle pose of the first frame."""
+
+    def __init__(self, cfg: Config, first: VehiclePose, rng: np.random.Generator) -> None:
+        sc = cfg.app.synthetic
+        p_enu = ned_to_enu(first.p_ned)
+        R_ned_frd = R_from_quat_wxyz(first.q_wxyz)
+        fwd_ned = R_ned_frd[:, 0].copy()
+        fwd_ned[2] = 0.0
+        if np.linalg.norm(fwd_ned) < 1e-6:
+            fwd_ned = np.array([1.0, 0.0, 0.0])
+        fwd = ned_to_enu(fwd_ned / np.linalg.norm(fwd_ned))
+        right = np.cross(fwd, [0.0, 0.0, 1.0])
+        self.radius = sc.radius
+        self.gates: list[GateMotion] = []
+        for k in range(sc.count):
+            centre = p_enu + fwd * sc.distance * (k + 1) + right * sc.lateral_offset + [0, 0, sc.height_offset]
+            # The normal points back at the vehicle's start side (the sim's convention).
+            self.gates.append(make_gate(sc.motion, centre, -fwd, rng=rng, gates_cfg=cfg.sim.gates))
+
+    def positions(self, t: float) -> list[np.ndarray]:
+        return [g.position(t) for g in self.gates]
+
+
+class SyntheticCamera:
+    """Paced at the camera rate; each frame renders the scene from the newest pose."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        pose: Callable[[], VehiclePose | None],
+        render: str | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        on_gate: Callable[[GateMotion | None, np.ndarray | None, float, bool], None] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.pose = pose
+        self.render = render or cfg.app.synthetic.render
+        self.clock = clock
+        self.on_gate = on_gate
+        self.period = 1.0 / cfg.camera.rate
+        self.model = CameraModel.from_config(cfg.camera)
+        self.rng = np.random.default_rng(cfg.sim.seed)
+        simcam = cfg.sim.camera
+        self.geo = GeometricCamera(self.model, simcam.pixel_noise, simcam.drop_prob, simcam.min_box,
+                                   np.random.default_rng(cfg.sim.seed + 1))
+        self.scene: SyntheticScene | None = None
+        self.t_scene0 = 0.0
+        self.index = 0
+        self._next: float | None = None
+        self._background: np.ndarray | None = None
+        self.faults = FaultInjector(cfg.app.synthetic.fault, cfg.app.synthetic.fault_after, self.model.width)
+        self.closed = False
+
+    def perception(self, pipeline: Any | None = None) -> Perception:
+        inner: Perception = GeometricPerception() if self.render == "geometric" else PipelinePerception(pipeline)
+        return InjectedPerception(inner, self.faults)
+
+    async def read(self) -> Frame:
+        now = self.clock()
+        if self._next is None:
+            self._next = now
+        if self._next > now:
+            await asyncio.sleep(self._next - now)
+        # Newest frame only: after a slow consumer, skip the missed ticks (a real camera drops them).
+        self._next = max(self._next + self.period, self.clock())
+        t = self.clock()
+        if self.cfg.app.synthetic.fault == "stall" and self.faults.active(t):
+            await asyncio.Event().wait()  # a camera driver that hangs: no frame ever again
+        pose = self.pose()
+        while pose is None:  # no pose yet (telemetry just started): wait a tick
+            await asyncio.sleep(self.period)
+            pose = self.pose()
+        if self.render == "image":
+            frame = await asyncio.get_running_loop().run_in_executor(None, self.capture, t, pose)
+        else:
+            frame = self.capture(t, pose)
+        return frame
+
+    def capture(self, t: float, pose: VehiclePose) -> Frame:
+        if self.scene is None:
+            self.scene = SyntheticScene(self.cfg, pose, self.rng)
+            self.t_scene0 = t
+        ts = t - self.t_scene0
+        p_enu = ned_to_enu(pose.p_ned)
+        R_enu_flu = R_enu_flu_from_ned_frd(R_from_quat_wxyz(pose.q_wxyz))
+        self.index += 1
+        best: tuple[float, GateMotion, np.ndarray] | None = None
+        for g in self.scene.gates:
+            c = g.position(ts)
+            depth = float((c - p_enu) @ R_enu_flu[:, 0])
+            if depth > 0.0 and (best is None or depth < best[0]):
+                best = (depth, g, c)
+        box = None
+        image = None
+        if self.render == "geometric":
+            if best is not None:
+                box = self.geo.capture(t, p_enu, R_enu_flu, best[2], best[1].normal, self.scene.radius)
+        else:
+            image = self._render(t, p_enu, R_enu_flu, best)
+        if self.on_gate is not None:
+            self.on_gate(None if best is None else best[1], None if best is None else best[2], self.scene.radius,
+                         box is not None or image is not None)
+        return Frame(self.index, t, image, box)
+
+    def _render(self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray,
+                best: tuple[float, GateMotion, np.ndarray] | None) -> np.ndarray:
+        from perception.render import TRAIN_STYLE, Gate, PinholeCamera, make_background, render_gate_frame
+
+        cam = PinholeCamera.from_config(self.cfg.camera)
+        if self._background is None:
+            self._background = make_background(cam.width, cam.height, np.random.default_rng(self.cfg.sim.seed),
+                                               TRAIN_STYLE)
+        R_enu_cam = R_enu_flu @ F_FRD_FLU @ self.model.R_body_cam
+        gate = None if best is None else Gate(best[2], best[1].normal, self.scene.radius if self.scene else 1.0)
+        img, _ = render_gate_frame(cam, R_enu_cam, p_enu, gate, style=None, rng=self.rng,
+                                   background=self._background, t=t)
+        return img
+
+    def close(self) -> None:
+        self.closed = True
