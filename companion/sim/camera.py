@@ -1,11 +1,20 @@
 """Geometric camera: a circular gate seen from the vehicle's true pose -> pixel bounding box.
 
-The gate rim (a circle of radius r in the gate plane) is sampled and projected through the
-camera model (intrinsics, distortion, mount); the box is the rim's pixel extent clipped to the
-image, as a detector would box a partly visible ring. No box when the gate centre is behind the
-camera or outside the image, when the box is smaller than ``min_box`` pixels, or when the frame
-is dropped. Pixel noise is added to the box centre and size. Latency is the runner's job (it
-delivers the box of a frame captured at t at t + delay).
+The gate centre and rim (a circle of radius r in the gate plane) are projected through the
+camera model (intrinsics, distortion, mount). Two box models:
+
+* ``clip=False`` (default, the paper's V-A measurement: "project the gate's ground truth
+  position into the camera frame"): the box is centred on the projected gate centre, its size
+  is the rim's pixel extent;
+* ``clip=True`` (detector-like): the box is the rim's extent clipped to the image, so a ring
+  cut by the image border gives a biased centre, as a real detector's box would.
+
+The rim's extent is exact (closed form for the projected circle) when the whole ring is in
+front of an undistorted camera, else from 32 rim samples (cv2.projectPoints with distortion).
+No box when the gate centre is behind the camera or outside the image (the FOV check), when
+the box is smaller than ``min_box`` pixels, or when the frame is dropped. Pixel noise is
+added to the box centre and size. Latency is the runner's job (it delivers the box of a
+frame captured at t at t + delay).
 """
 
 from __future__ import annotations
@@ -73,8 +82,10 @@ class GeometricCamera:
         drop_prob: float = 0.0,
         min_box: float = 2.0,
         rng: np.random.Generator | None = None,
+        clip: bool = False,
     ) -> None:
         self.model = model
+        self.clip = bool(clip)
         self.pixel_noise = float(pixel_noise)
         self.drop_prob = float(drop_prob)
         self.min_box = float(min_box)
@@ -134,6 +145,11 @@ class GeometricCamera:
                 return None
             lo, hi = px[1:].min(axis=0), px[1:].max(axis=0)
             u0, v0, u1, v1 = float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+        if not self.clip:
+            # The paper's measurement: the projected gate centre; the size is the rim's extent.
+            if u1 - u0 < self.min_box or v1 - v0 < self.min_box:
+                return None
+            return BoundingBox(cu, cv, u1 - u0, v1 - v0, 1.0, t)
         x0, y0 = max(0.0, u0), max(0.0, v0)
         x1, y1 = min(float(m.width), u1), min(float(m.height), v1)
         if x1 - x0 < self.min_box or y1 - y0 < self.min_box:

@@ -39,8 +39,8 @@ class SimQuadConfig(Section):
     tau_omega: Seconds = Field(0.04, gt=0.0, le=1.0, description="body-rate first-order time constant, s")
     tau_att: Seconds = Field(0.15, gt=0.0, le=2.0, description="attitude loop tau (rate = 2/tau q_e), s")
     tau_thrust: Seconds = Field(0.03, gt=0.0, le=1.0, description="collective-thrust first-order lag, s")
-    drag_lin: Number = Field(0.2, ge=0.0, le=10.0, description="linear drag, N per m/s of airspeed")
-    drag_quad: Number = Field(0.032, ge=0.0, le=10.0, description="quadratic drag, N per (m/s)^2")
+    drag_lin: Number = Field(0.05, ge=0.0, le=10.0, description="linear drag, N per m/s of airspeed")
+    drag_quad: Number = Field(0.011, ge=0.0, le=10.0, description="quadratic drag, N per (m/s)^2")
     max_rate: DegPerSecond = Field(220.0, gt=1.0, le=2000.0, description="body-rate limit, deg/s")
     max_touchdown_speed: MetersPerSecond = Field(
         1.0, gt=0.0, le=20.0, description="descending faster than this at z = 0 is a ground contact"
@@ -61,8 +61,8 @@ class SensorsConfig(Section):
     accel_bias: MetersPerSecond2 = Field(0.02, ge=0.0, le=5.0, description="std of the per-run bias")
     gyro_noise: DegPerSecond = Field(0.3, ge=0.0, le=100.0)
     gyro_bias: DegPerSecond = Field(0.1, ge=0.0, le=100.0, description="std of the per-run bias")
-    attitude_noise: Deg = Field(0.3, ge=0.0, le=30.0, description="white noise per axis of the estimate")
-    attitude_bias: Deg = Field(0.3, ge=0.0, le=30.0, description="std of the per-run estimate bias per axis")
+    attitude_noise: Deg = Field(0.05, ge=0.0, le=30.0, description="white noise per axis of the estimate")
+    attitude_bias: Deg = Field(0.2, ge=0.0, le=30.0, description="std of the per-run estimate bias per axis")
     baro_noise: Meters = Field(0.1, ge=0.0, le=10.0)
     baro_bias: Meters = Field(0.5, ge=0.0, le=100.0, description="std of the per-run offset")
 
@@ -74,6 +74,10 @@ class SimCameraConfig(Section):
     delay: Seconds = Field(0.0, ge=0.0, le=2.0, description="box of frame t arrives at t + delay")
     drop_prob: Number = Field(0.0, ge=0.0, le=1.0, description="probability a frame gives no box")
     min_box: Pixels = Field(2.0, ge=0.0, le=100.0, description="boxes smaller than this are not detected, px")
+    clip_box: bool = Field(
+        False, description="False: box centred on the projected gate centre (paper); True: ring extent clipped "
+        "to the image, like a detector's box of a partly visible ring"
+    )
 
 
 class GateMotionConfig(Section):
@@ -103,6 +107,15 @@ class ScenarioConfig(Section):
     fov_timeout: Seconds = Field(1.0, gt=0.0, le=60.0, description="no box for this long: fov_lost, s")
 
 
+class BaselineConfig(Section):
+    """The PN acceleration controller of Bhattacharya et al. (paper Table III), velocity known."""
+
+    nav_constant: Number = Field(3.0, gt=0.0, le=20.0, description="PN navigation constant N")
+    speed: MetersPerSecond = Field(5.0, gt=0.0, le=40.0, description="speed held along the LOS, m/s")
+    speed_gain: Number = Field(1.0, gt=0.0, le=20.0, description="speed loop gain, 1/s")
+    max_tilt: Deg = Field(45.0, gt=1.0, lt=89.0, description="tilt limit (PX4 MPC_TILTMAX_AIR), deg")
+
+
 class SimConfig(Section):
     seed: int = Field(0, ge=0)
     rate: Hertz = Field(200.0, ge=200.0, le=5000.0, description="dynamics integration rate, Hz")
@@ -112,3 +125,4 @@ class SimConfig(Section):
     camera: SimCameraConfig = SimCameraConfig()
     gates: GateMotionConfig = GateMotionConfig()
     scenario: ScenarioConfig = ScenarioConfig()
+    baseline: BaselineConfig = BaselineConfig()

@@ -59,6 +59,8 @@ class Trajectory:
     mode: list[str] = field(default_factory=list)
     thrust: list[float] = field(default_factory=list)
     box: list[tuple[float, float, float, float] | None] = field(default_factory=list)
+    demand_scale: list[float] = field(default_factory=list)
+    lambda_dot: list[float] = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {"t": np.array(self.t), "p": np.array(self.p), "v": np.array(self.v), "gate": np.array(self.gate)}
@@ -118,7 +120,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     from perception.los import CameraModel
 
     camera = GeometricCamera(CameraModel.from_config(cfg.camera), sim.camera.pixel_noise,
-                             sim.camera.drop_prob, sim.camera.min_box, rng_cam)
+                             sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box)
     sensors = Sensors(sim.sensors, rng_sens)
     wind = Wind(sim.wind, rng_wind)
     ctrl = _make_controller(cfg, spec.controller, params)
@@ -138,6 +140,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     top_speed = 0.0
     outcome: RunOutcome | None = None
     mode = "init"
+    last_out = None
     k = 0
     while True:
         t = k * dt
@@ -177,12 +180,13 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                 gp = replace(ctrl.p.guidance, v_rel_bar=max(closing, 0.1))
                 ctrl.p = replace(ctrl.p, guidance=gp)
                 out = ctrl.step(t_cap, b, q_est)
-            else:  # baseline: velocity known (GPS), as Bhattacharya et al. assume
-                out = ctrl.step(t_cap, b, q_est, s.v.copy())
+            else:  # baseline: velocities known (GPS), as Bhattacharya et al. assume
+                out = ctrl.step(t_cap, b, q_est, s.v.copy(), gate.velocity(t) - s.v)
             sp = out.setpoint
             q_cmd = matrix_to_quat(R_enu_flu_from_ned_frd(sp.R_ned_frd))
             thrust_cmd = sp.thrust
             mode = out.mode
+            last_out = out
         if traj is not None:
             traj.t.append(t)
             traj.p.append(s.p.copy())
@@ -191,6 +195,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.mode.append(mode)
             traj.thrust.append(thrust_cmd)
             traj.box.append(None if box is None else (box.cx, box.cy, box.w, box.h))
+            traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
+            traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
     outcome.top_speed = top_speed

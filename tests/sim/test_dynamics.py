@@ -59,24 +59,24 @@ def test_held_tilt_gives_expected_acceleration():
 
 
 def test_drag_limits_top_speed_to_the_balance_of_tilt_and_drag():
-    tilt = math.radians(45.0)
+    tilt = math.radians(21.05)  # the paper's gamma_bar: the tilt the tuned controller flies at
     q_cmd = Rotation.from_euler("y", tilt).as_quat()
     params = QuadParams()
     thrust = params.hover_thrust / math.cos(tilt)
     quad = Quadrotor(params, airborne())
-    for _ in range(60):
+    for _ in range(120):
         s = quad.step(1.0, q_cmd, thrust)
     # Independent: horizontal thrust g tan(45) = (drag_lin v + drag_quad v^2) / m.
     c, b, a = -G * math.tan(tilt) * params.mass, params.drag_lin, params.drag_quad
     v_top = (-b + math.sqrt(b * b - 4 * a * c)) / (2 * a)
-    assert 20.0 < v_top < 25.0
+    assert 20.0 < v_top < 26.0
     assert math.isclose(s.v[0], v_top, rel_tol=2e-3)
     assert s.p[2] > 10.0 - 1.0  # altitude roughly kept (drag has no vertical part at level flight)
 
 
 def test_wind_drifts_a_hovering_vehicle_to_the_wind_speed():
     quad = Quadrotor(QuadParams(), airborne())
-    for _ in range(150):  # time constant m / drag_lin = 10 s
+    for _ in range(400):  # time constant ~ m / drag_lin = 40 s
         s = quad.step(1.0, LEVEL, 0.5, wind_enu=np.array([3.0, 0.0, 0.0]))
     assert math.isclose(s.v[0], 3.0, rel_tol=1e-3)
 
