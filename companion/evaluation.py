@@ -1,0 +1,503 @@
+"""``companion eval SUITE``: the paper's simulation studies (section V-A) on the in-process simulator.
+
+Suites (paper numbers beside ours in every table):
+
+* ``table1``   Table I: runs spread evenly over the five gate motions, success for 1 m / 2 m
+               gates, mean t_gate per motion and in total, top speed.
+* ``latency``  Fig. "robustness_latency": box delays 0/100/200/300 ms on stationary, linear
+               fast and planar gates, success for 0.5 / 1 / 2 m gates.
+* ``vrel``     Table "relative_velocity_estimation": starts at 30 m and 150 m, knot with
+               d_knot = 5 m, v_rel_bar = 30 / 20 / 10 m/s and the true closing speed; d_center.
+* ``baseline`` Table III: ours with gamma_bar = 3.5 deg against the PN acceleration controller of
+               Bhattacharya et al. (companion/baseline.py) on a 0.5 m gate, gates moving linearly
+               and planar at 1.25-5 m/s (drawn per run, the same draws for both controllers).
+
+Every suite: ``--seed`` (per-run seeds derive from it), ``--jobs`` worker processes, a progress
+bar, a JSON file of per-run and aggregate results (success by radius under ``"total"``), a
+Markdown table, plots (sample 3D trajectories; success against delay), and the usual
+``--config FILE`` / ``--set section.key=value`` overrides for perturbed scenarios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing as mp
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from companion.config import add_config_arguments, config_as_dict, config_from_args
+from companion.sim.runner import RunResult, RunSpec, run_once, with_overrides
+from companion.sim.scoring import aggregate, rkey
+
+if TYPE_CHECKING:
+    from companion.config import Config
+
+SUITES = ("table1", "latency", "vrel", "baseline")
+
+# The paper's numbers (Table I with reward R_dt, Fig. latency, Table II v_rel, Table III).
+PAPER = {
+    "table1": {
+        "success_1m": {"stationary": 1.00, "linear_slow": 1.00, "linear_fast": 0.67, "planar": 1.00,
+                       "knot": 1.00, "total": 0.93},
+        "success_2m": {"stationary": 1.00, "linear_slow": 1.00, "linear_fast": 0.75, "planar": 1.00,
+                       "knot": 1.00, "total": 0.95},
+        "t_gate_s": {"stationary": 4.11, "linear_slow": 4.03, "linear_fast": 5.41, "planar": 4.01,
+                     "knot": 4.03, "total": 4.32},
+        "top_speed_mps": 14.6,
+    },
+    "latency": {  # success by delay (s) for each radius (m)
+        "0.5": {"0.0": 0.63, "0.1": 0.44, "0.2": 0.48, "0.3": 0.28},
+        "1.0": {"0.0": 0.96, "0.1": 0.93, "0.2": 0.63, "0.3": 0.52},
+        "2.0": {"0.0": 1.00, "0.1": 1.00, "0.2": 1.00, "0.3": 0.93},
+    },
+    "vrel": {  # d_center mean, std (m) by top-speed class and knowledge
+        "30m": {"30": (4.72, 1.03), "20": (1.01, 0.22), "10": (1.02, 0.34), "true": (0.42, 0.19)},
+        "150m": {"30": (0.65, 0.05), "20": (0.70, 0.35), "10": (4.84, 0.45), "true": (1.19, 0.43)},
+        "top_speed_mps": {"30m": 15.0, "150m": 25.0},
+    },
+    "baseline": {"linear": {"baseline": 0.35, "pn": 0.69}, "planar": {"baseline": 0.41, "pn": 0.56}},
+}
+
+TABLE1_MOTIONS = ("stationary", "linear_slow", "linear_fast", "planar", "knot")
+LATENCY_MOTIONS = ("stationary", "linear_fast", "planar")
+LATENCY_DELAYS = (0.0, 0.1, 0.2, 0.3)
+VREL_ESTIMATES = ("30", "20", "10", "true")
+
+
+@dataclass
+class Job:
+    cfg: Config
+    spec: RunSpec
+    group: dict[str, Any]  # what the suite varies in this run (motion, delay, controller, ...)
+
+
+@dataclass
+class Suite:
+    name: str
+    jobs: list[Job]
+    radii: list[float]
+    report: Callable[[list[dict], list[float]], tuple[dict, str]]  # -> (groups, markdown)
+    plots: list[str] = field(default_factory=list)
+
+
+# -- running ---------------------------------------------------------------------------------------
+
+
+def _work(item: tuple[int, Job, list[float]]) -> tuple[int, dict]:
+    i, job, radii = item
+    r = run_once(job.cfg, job.spec)
+    return i, {**job.group, **r.as_dict(radii)}
+
+
+def run_jobs(jobs: Sequence[Job], radii: list[float], n_jobs: int = 2, progress: bool = True,
+             desc: str = "runs") -> list[dict]:
+    """Run every job (in ``n_jobs`` processes when > 1), results in job order."""
+    from tqdm import tqdm
+
+    items = [(i, j, radii) for i, j in enumerate(jobs)]
+    out: list[dict | None] = [None] * len(items)
+    bar = tqdm(total=len(items), desc=desc, unit="run", disable=not progress, file=sys.stderr)
+    try:
+        if n_jobs <= 1 or len(items) <= 1:
+            for it in items:
+                i, res = _work(it)
+                out[i] = res
+                bar.update()
+        else:
+            # fork: workers inherit the imported modules (fast start); each run is independent.
+            ctx = mp.get_context("fork")
+            with ctx.Pool(n_jobs) as pool:
+                for i, res in pool.imap_unordered(_work, items, chunksize=1):
+                    out[i] = res
+                    bar.update()
+    finally:
+        bar.close()
+    return [o for o in out if o is not None]
+
+
+# -- suites ------------------------------------------------------------------------------------------
+
+
+def _per(runs: int, cells: int) -> int:
+    return max(1, runs // cells)
+
+
+def _fmt(x: float | None, nd: int = 2) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{nd}f}"
+
+
+def _groups(results: list[dict], key: Callable[[dict], str], radii: list[float]) -> dict[str, dict]:
+    names: list[str] = []
+    for r in results:
+        if key(r) not in names:
+            names.append(key(r))
+    return {n: aggregate([r for r in results if key(r) == n], radii) for n in names}
+
+
+def suite_table1(cfg: Config, runs: int | None = None) -> Suite:
+    n = _per(runs or 60, len(TABLE1_MOTIONS))
+    jobs = [Job(cfg, RunSpec(m, seed=k * 1000 + i), {"motion": m})
+            for k, m in enumerate(TABLE1_MOTIONS) for i in range(n)]
+
+    def report(results: list[dict], radii: list[float]) -> tuple[dict, str]:
+        groups = _groups(results, lambda r: r["motion"], radii)
+        p = PAPER["table1"]
+        lines = ["| Gate motion | Success 1 m (paper) | Success 2 m (paper) | t_gate s (paper) | "
+                 "d_center m | top speed m/s | failures (1 m) |", "|---|---|---|---|---|---|---|"]
+        rows = [*TABLE1_MOTIONS, "total"]
+        total = aggregate(results, radii)
+        for m in rows:
+            g = total if m == "total" else groups.get(m)
+            if g is None:
+                continue
+            lines.append(
+                f"| {m} | {_fmt(g['success']['1.0'])} ({p['success_1m'][m]:.2f}) | "
+                f"{_fmt(g['success']['2.0'])} ({p['success_2m'][m]:.2f}) | {_fmt(g['t_gate_mean_s'])} "
+                f"({p['t_gate_s'][m]:.2f}) | {_fmt(g['d_center_mean_m'])} | {_fmt(g['top_speed_mps'], 1)} | "
+                f"{_reasons(g, '1.0')} |")
+        lines.append(f"\nTop speed: ours {total['top_speed_mps']:.1f} m/s (paper {p['top_speed_mps']} m/s).")
+        return groups, "\n".join(lines)
+
+    return Suite("table1", jobs, [0.5, 1.0, 2.0], report, ["trajectories"])
+
+
+def suite_latency(cfg: Config, runs: int | None = None) -> Suite:
+    n = _per(runs or 120, len(LATENCY_DELAYS) * len(LATENCY_MOTIONS))
+    jobs = []
+    for d in LATENCY_DELAYS:
+        c = with_overrides(cfg, {"sim": {"camera": {"delay": d}}})
+        for k, m in enumerate(LATENCY_MOTIONS):
+            # The same initial conditions at every delay: the delay is the only difference.
+            jobs += [Job(c, RunSpec(m, seed=k * 1000 + i), {"motion": m, "delay_s": d}) for i in range(n)]
+
+    def report(results: list[dict], radii: list[float]) -> tuple[dict, str]:
+        groups = _groups(results, lambda r: f"{r['delay_s']:.1f}", radii)
+        lines = ["| Delay ms | " + " | ".join(f"Success {r:g} m (paper)" for r in radii) + " | t_gate s |",
+                 "|---" * (len(radii) + 2) + "|"]
+        for d in LATENCY_DELAYS:
+            g = groups.get(f"{d:.1f}")
+            if g is None:
+                continue
+            cells = [f"{_fmt(g['success'][rkey(r)])} ({PAPER['latency'][rkey(r)][f'{d:.1f}']:.2f})" for r in radii]
+            lines.append(f"| {d * 1000:.0f} | " + " | ".join(cells) + f" | {_fmt(g['t_gate_mean_s'])} |")
+        by_motion = _groups(results, lambda r: f"{r['motion']} @ {r['delay_s'] * 1000:.0f} ms", radii)
+        lines += ["", "| Motion @ delay | " + " | ".join(f"Success {r:g} m" for r in radii) + " |",
+                  "|---" * (len(radii) + 1) + "|"]
+        for name, g in by_motion.items():
+            lines.append(f"| {name} | " + " | ".join(_fmt(g["success"][rkey(r)]) for r in radii) + " |")
+        groups.update({f"by_motion/{k}": v for k, v in by_motion.items()})
+        return groups, "\n".join(lines)
+
+    return Suite("latency", jobs, [0.5, 1.0, 2.0], report, ["trajectories", "latency"])
+
+
+def suite_vrel(cfg: Config, runs: int | None = None) -> Suite:
+    n = _per(runs or 80, 2 * len(VREL_ESTIMATES))
+    knot_speed = cfg.sim.gates.knot_top_speed * 5.0 / cfg.sim.gates.d_knot  # same omega, d_knot = 5
+    jobs = []
+    for dist, timeout in ((30.0, 30.0), (150.0, 60.0)):
+        base = {"sim": {"scenario": {"distance_min": dist, "distance_max": dist, "timeout": timeout},
+                        "gates": {"d_knot": 5.0, "knot_top_speed": knot_speed}}}
+        for est in VREL_ESTIMATES:
+            over = base if est == "true" else deep({"guidance": {"v_rel_bar": float(est)}}, base)
+            c = with_overrides(cfg, over)
+            ctrl = "pn_true_vrel" if est == "true" else "pn"
+            jobs += [Job(c, RunSpec("knot", seed=int(dist) * 1000 + i, controller=ctrl),
+                         {"start_m": dist, "v_rel_bar": est}) for i in range(n)]
+
+    def report(results: list[dict], radii: list[float]) -> tuple[dict, str]:
+        groups = _groups(results, lambda r: f"{r['start_m']:.0f}m/{r['v_rel_bar']}", radii)
+        lines = ["| Start | top speed m/s (paper) | v_rel knowledge | d_center m (paper) | Success 1 m |",
+                 "|---|---|---|---|---|"]
+        for dist in ("30m", "150m"):
+            for est in VREL_ESTIMATES:
+                g = groups.get(f"{dist}/{est}")
+                if g is None:
+                    continue
+                pm, ps = PAPER["vrel"][dist][est]
+                label = "perfect knowledge" if est == "true" else f"estimate {est} m/s"
+                lines.append(
+                    f"| {dist} | {_fmt(g['top_speed_mean_mps'], 1)} ({PAPER['vrel']['top_speed_mps'][dist]:.0f}) | "
+                    f"{label} | {_fmt(g['d_center_mean_m'])} ± {_fmt(g['d_center_std_m'])} ({pm:.2f} ± {ps:.2f}) | "
+                    f"{_fmt(g['success']['1.0'])} |")
+        return groups, "\n".join(lines)
+
+    return Suite("vrel", jobs, [0.5, 1.0, 2.0], report, ["trajectories"])
+
+
+def suite_baseline(cfg: Config, runs: int | None = None, seed: int = 0) -> Suite:
+    n = _per(runs or 120, 4)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 3]))
+    ours = with_overrides(cfg, {"guidance": {"gamma_bar": 3.5}})
+    jobs = []
+    for k, (label, motion, key) in enumerate((("linear", "linear_fast", "linear_fast_speed"),
+                                              ("planar", "planar", "planar_top_speed"))):
+        for i in range(n):
+            speed = float(rng.uniform(1.25, 5.0))
+            over = {"sim": {"gates": {key: speed}}}
+            for ctrl, base in (("baseline", cfg), ("pn", ours)):
+                jobs.append(Job(with_overrides(base, over), RunSpec(motion, seed=k * 1000 + i, controller=ctrl),
+                                {"motion_class": label, "controller": ctrl, "gate_speed_mps": speed}))
+
+    def report(results: list[dict], radii: list[float]) -> tuple[dict, str]:
+        groups = _groups(results, lambda r: f"{r['motion_class']}/{r['controller']}", radii)
+        lines = ["| Gate motion | PN accel. baseline, velocity known (paper) | PN-informed, ours (paper) | "
+                 "t_gate s baseline / ours | failures baseline / ours (0.5 m) |", "|---|---|---|---|---|"]
+        for label in ("linear", "planar"):
+            b, o = groups.get(f"{label}/baseline"), groups.get(f"{label}/pn")
+            if b is None or o is None:
+                continue
+            pb = PAPER["baseline"][label]
+            lines.append(
+                f"| {label} | {_fmt(b['success']['0.5'])} ({pb['baseline']:.2f}) | {_fmt(o['success']['0.5'])} "
+                f"({pb['pn']:.2f}) | {_fmt(b['t_gate_mean_s'])} / {_fmt(o['t_gate_mean_s'])} | "
+                f"{_reasons(b, '0.5')} / {_reasons(o, '0.5')} |")
+        return groups, "\n".join(lines)
+
+    return Suite("baseline", jobs, [0.5, 1.0, 2.0], report, ["trajectories"])
+
+
+def deep(a: dict, b: dict) -> dict:
+    from companion.configbase import deep_merge
+
+    return deep_merge(b, a)
+
+
+def _reasons(g: dict, r: str) -> str:
+    f = g.get("failures", {}).get(r, {})
+    return ", ".join(f"{k} {v}" for k, v in sorted(f.items())) or "-"
+
+
+def build_suite(name: str, cfg: Config, runs: int | None = None, seed: int = 0) -> Suite:
+    if name not in SUITES:
+        raise ValueError(f"eval: unknown suite {name!r} (use one of: {', '.join(SUITES)})")
+    cfg = with_overrides(cfg, {"sim": {"seed": seed}})
+    if name == "table1":
+        return suite_table1(cfg, runs)
+    if name == "latency":
+        return suite_latency(cfg, runs)
+    if name == "vrel":
+        return suite_vrel(cfg, runs)
+    return suite_baseline(cfg, runs, seed)
+
+
+def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0, n_jobs: int = 2,
+              progress: bool = True) -> dict:
+    """Run a suite; returns the JSON-able result (per-run, groups, total, markdown, paper)."""
+    suite = build_suite(name, cfg, runs, seed)
+    t0 = time.perf_counter()
+    results = run_jobs(suite.jobs, suite.radii, n_jobs, progress, desc=name)
+    wall = time.perf_counter() - t0
+    groups, md = suite.report(results, suite.radii)
+    sim_s = sum(r["sim_time_s"] for r in results)
+    return {
+        "suite": name,
+        "seed": seed,
+        "radii": suite.radii,
+        "total": aggregate(results, suite.radii),
+        "groups": groups,
+        "markdown": md,
+        "paper": PAPER[name],
+        "wall_time_s": wall,
+        "sim_time_s": sim_s,
+        "jobs": n_jobs,
+        "config": config_as_dict(cfg),
+        "runs": results,
+    }
+
+
+# -- plots -------------------------------------------------------------------------------------------
+
+
+def plot_trajectories(results: list[RunResult], path: Path, title: str = "") -> None:
+    """3D paths of vehicle and gate for recorded runs, with the crossing point."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(8, 7))
+    ax = fig.add_subplot(projection="3d")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, r in enumerate(results):
+        if r.trajectory is None or not r.trajectory.t:
+            continue
+        a = r.trajectory.arrays()
+        c = colors[k % len(colors)]
+        o = r.outcome
+        status = f"d={o.d_center:.2f} m" if o.crossed else o.reason
+        ax.plot(a["p"][:, 0], a["p"][:, 1], a["p"][:, 2], color=c, label=f"{r.spec.motion} #{r.spec.seed}: {status}")
+        ax.plot(a["gate"][:, 0], a["gate"][:, 1], a["gate"][:, 2], color=c, ls="--", lw=1)
+        ax.scatter(*a["p"][0], color=c, marker="o", s=20)
+        if o.crossing_point is not None:
+            ax.scatter(*o.crossing_point, color=c, marker="x", s=40)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_zlabel("up [m]")
+    ax.set_title(title or "vehicle (solid), gate centre (dashed), crossing (x)")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_latency(out: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for k, r in enumerate(out["radii"]):
+        key = rkey(r)
+        ds = [d for d in LATENCY_DELAYS if f"{d:.1f}" in out["groups"]]
+        ours = [out["groups"][f"{d:.1f}"]["success"][key] for d in ds]
+        paper = [PAPER["latency"][key][f"{d:.1f}"] for d in ds]
+        c = f"C{k}"
+        ax.plot(ds, ours, "o-", color=c, label=f"ours r = {r:g} m")
+        ax.plot(ds, paper, "x--", color=c, alpha=0.6, label=f"paper r = {r:g} m")
+    ax.set_xlabel("box delay [s]")
+    ax.set_ylabel("success rate")
+    ax.set_ylim(0, 1.05)
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def sample_runs(name: str, cfg: Config, seed: int, per_group: int = 1) -> list[RunResult]:
+    """Re-fly the first run(s) of each group with recording on (cheap: a handful of runs)."""
+    suite = build_suite(name, cfg, None, seed)
+    seen: dict[str, int] = {}
+    picked = []
+    for job in suite.jobs:
+        key = json.dumps({k: v for k, v in job.group.items() if k not in ("gate_speed_mps", "delay_s")},
+                         sort_keys=True)
+        if seen.get(key, 0) < per_group:
+            seen[key] = seen.get(key, 0) + 1
+            picked.append(job)
+    return [run_once(j.cfg, j.spec, record=True) for j in picked[:8]]
+
+
+# -- command line -------------------------------------------------------------------------------------
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "eval", help="run an evaluation suite of the paper on the in-process simulator",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("suite", choices=SUITES, help="which study to run")
+    p.add_argument("--runs", type=int, default=None, metavar="N",
+                   help="total runs (quick mode: e.g. --runs 10); default: the suite's full size")
+    p.add_argument("--seed", type=int, default=0, help="suite seed; every run's seed derives from it")
+    p.add_argument("--jobs", "-j", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="directory for results.json, table.md and plots (default eval_out/SUITE)")
+    p.add_argument("--json", type=Path, default=None, metavar="PATH",
+                   help="JSON result file (default DIR/results.json)")
+    p.add_argument("--no-plots", action="store_true", help="skip the plots")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_arguments(p)
+    p.set_defaults(func=_cmd_eval)
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    if args.runs is not None and args.runs < 1:
+        print(f"companion eval: --runs must be >= 1 (got {args.runs})", file=sys.stderr)
+        return 2
+    if args.jobs < 1:
+        print(f"companion eval: --jobs must be >= 1 (got {args.jobs})", file=sys.stderr)
+        return 2
+    cfg = config_from_args(args)
+    out_dir = args.out if args.out is not None else Path("eval_out") / args.suite
+    out_dir.mkdir(parents=True, exist_ok=True)
+    res = run_suite(args.suite, cfg, runs=args.runs, seed=args.seed, n_jobs=min(args.jobs, os.cpu_count() or 1),
+                    progress=not args.no_progress)
+    json_path = args.json if args.json is not None else out_dir / "results.json"
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(res, indent=1, default=_json_default))
+    cmd = "companion eval " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else f"companion eval {args.suite}"
+    md = (f"## {args.suite}\n\nCommand: `{cmd}`  \nRuns: {len(res['runs'])}, seed {args.seed}, "
+          f"{res['sim_time_s']:.0f} s simulated in {res['wall_time_s']:.1f} s wall on {res['jobs']} process(es). "
+          f"Ours first, the paper's in brackets.\n\n{res['markdown']}\n")
+    (out_dir / "table.md").write_text(md)
+    print(md)
+    if not args.no_plots:
+        samples = sample_runs(args.suite, cfg, args.seed)
+        plot_trajectories(samples, out_dir / "trajectories.png", f"{args.suite}: sample runs")
+        if args.suite == "latency":
+            plot_latency(res, out_dir / "latency.png")
+    print(f"wrote {json_path}, {out_dir / 'table.md'}" + ("" if args.no_plots else f", plots in {out_dir}"))
+    return 0
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def plot_run(result: RunResult, path: Path) -> None:
+    """One run: 3D paths plus speed, thrust, LOS rate and box centre over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tr = result.trajectory
+    if tr is None or not tr.t:
+        raise ValueError("plot_run: the run was not recorded (run_once(..., record=True))")
+    a = tr.arrays()
+    o = result.outcome
+    fig = plt.figure(figsize=(11, 7))
+    ax = fig.add_subplot(2, 2, 1, projection="3d")
+    ax.plot(a["p"][:, 0], a["p"][:, 1], a["p"][:, 2], label="vehicle")
+    ax.plot(a["gate"][:, 0], a["gate"][:, 1], a["gate"][:, 2], "--", label="gate centre")
+    if o.crossing_point is not None:
+        ax.scatter(*o.crossing_point, color="k", marker="x", s=40, label="crossing")
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_zlabel("up [m]")
+    ax.legend(fontsize=7)
+    t = a["t"]
+    ax2 = fig.add_subplot(2, 2, 2)
+    ax2.plot(t, np.linalg.norm(a["v"], axis=1), label="speed [m/s]")
+    ax2.plot(t, np.linalg.norm(a["gate"] - a["p"], axis=1), label="range to gate [m]")
+    ax2.set_xlabel("t [s]")
+    ax2.legend(fontsize=7)
+    ax2.grid(alpha=0.3)
+    ax3 = fig.add_subplot(2, 2, 3)
+    ax3.plot(t, tr.thrust, label="thrust setpoint [0..1]")
+    ax3.plot(t, tr.lambda_dot, label="LOS rate [rad/s]")
+    ax3.plot(t, tr.demand_scale, label="PN demand scale", alpha=0.7)
+    ax3.set_xlabel("t [s]")
+    ax3.legend(fontsize=7)
+    ax3.grid(alpha=0.3)
+    ax4 = fig.add_subplot(2, 2, 4)
+    cx = [np.nan if b is None else b[0] for b in tr.box]
+    cy = [np.nan if b is None else b[1] for b in tr.box]
+    ax4.plot(t, cx, label="box cx [px]")
+    ax4.plot(t, cy, label="box cy [px]")
+    ax4.set_xlabel("t [s]")
+    ax4.legend(fontsize=7)
+    ax4.grid(alpha=0.3)
+    status = f"crossed at t = {o.t_gate:.2f} s, d_center = {o.d_center:.2f} m" if o.crossed else f"failed: {o.reason}"
+    fig.suptitle(f"{result.spec.motion} (seed {result.spec.seed}, {result.spec.controller}): {status}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
