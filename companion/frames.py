@@ -57,8 +57,14 @@ def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:
     """
     r20 = min(1.0, max(-1.0, float(R_ned_frd[2, 0])))
     pitch = -math.asin(r20)
-    roll = math.atan2(float(R_ned_frd[2, 1]), float(R_ned_frd[2, 2]))
-    yaw = math.atan2(float(R_ned_frd[1, 0]), float(R_ned_frd[0, 0]))
+    if math.hypot(float(R_ned_frd[2, 1]), float(R_ned_frd[2, 2])) < 1e-7:
+        # Gimbal lock (nose straight up or down): only yaw - roll is defined; take roll = 0,
+        # then body y = Rz(yaw) e_y gives the yaw.
+        roll = 0.0
+        yaw = math.atan2(-float(R_ned_frd[0, 1]), float(R_ned_frd[1, 1]))
+    else:
+        roll = math.atan2(float(R_ned_frd[2, 1]), float(R_ned_frd[2, 2]))
+        yaw = math.atan2(float(R_ned_frd[1, 0]), float(R_ned_frd[0, 0]))
     return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
 
 

@@ -1,0 +1,106 @@
+"""``companion bench``: the speed figures the issues set goals for, measured on this machine.
+
+Sections (each reported in the JSON under its own key):
+  controller_step_us     LOS (ray + rotation) + LOS filter + PN solve + setpoint conversion, per frame
+  sim_speed_x_realtime   in-process simulator with the geometric camera, one core
+  pipeline_ms_per_frame  detector + tracker at 640x480, one core
+  frame_to_setpoint_ms   frame -> setpoint latency inside the flight app, in simulation
+
+Numbers are reported, never asserted: tests stay deterministic on a slow machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import add_config_arguments, config_from_args
+
+
+def bench_controller(cfg: Any, steps: int = 20000) -> dict[str, Any]:
+    """Per-step time of PNController.step on a weaving target seen from a gently rotating vehicle."""
+    from companion.controller import PNController
+    from companion.frames import R_from_euler_ned_deg, quat_wxyz_from_R
+    from perception.types import BoundingBox
+
+    ctrl = PNController.from_config(cfg)
+    rng = np.random.default_rng(0)
+    # Inputs prepared up front so only the controller is timed.
+    atts = [
+        quat_wxyz_from_R(R_from_euler_ned_deg(3 * math.sin(k / 40), -10 + 2 * math.cos(k / 30), 5 * math.sin(k / 90)))
+        for k in range(256)
+    ]
+    boxes = [BoundingBox(320 + 40 * math.sin(k / 25) + rng.normal(0, 1), 240 + 20 * math.cos(k / 35), 40, 40)
+             for k in range(256)]
+    dt = 1.0 / cfg.camera.rate
+    times = np.empty(steps)
+    clock = time.perf_counter_ns
+    for k in range(steps):
+        i = k & 255
+        t0 = clock()
+        ctrl.step(k * dt, boxes[i], atts[i])
+        times[k] = clock() - t0
+    us = times[steps // 10:] / 1e3  # skip warm-up
+    return {"median": float(np.median(us)), "p95": float(np.percentile(us, 95)), "steps": steps, "goal_median": 50.0}
+
+
+# (JSON key, module, function) of the benchmarks other modules own.
+_EXTERNAL = (
+    ("sim_speed_x_realtime", "companion.sim.runner", "bench_sim"),
+    ("pipeline_ms_per_frame", "perception.bench", "bench_perception"),
+    ("frame_to_setpoint_ms", "companion.app.bench", "bench_app"),
+)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = config_from_args(args)
+    only = set(args.only or [])
+    results: dict[str, Any] = {
+        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
+    }
+
+    def want(key: str) -> bool:
+        return not only or key in only
+
+    if want("controller_step_us"):
+        r = bench_controller(cfg, steps=2000 if args.quick else 20000)
+        results["controller_step_us"] = r
+        print(f"controller step: median {r['median']:.1f} us, p95 {r['p95']:.1f} us (goal: median <= 50 us)")
+    for key, module, func in _EXTERNAL:
+        if not want(key):
+            continue
+        try:
+            fn = getattr(importlib.import_module(module), func)
+        except (ModuleNotFoundError, AttributeError) as e:
+            results[key] = {"error": f"not available: {e}"}
+            print(f"{key}: not available ({e})", file=sys.stderr)
+            continue
+        r = fn(quick=args.quick) if "quick" in fn.__code__.co_varnames else fn()
+        # Each owner returns {key: value-or-dict, ...}; keep its whole dict under the section key.
+        results[key] = r.get(key, r) if isinstance(r, dict) and len(r) == 1 else r
+        print(f"{key}: {json.dumps(results[key])}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("bench", help="measure controller step time, simulator speed, perception and app latency")
+    add_config_arguments(p)
+    p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
+    p.add_argument("--quick", action="store_true", help="fewer iterations (a smoke run, less precise)")
+    p.add_argument("--only", action="append", metavar="SECTION",
+                   help="run only this section (repeatable): controller_step_us, sim_speed_x_realtime, "
+                        "pipeline_ms_per_frame, frame_to_setpoint_ms")
+    p.set_defaults(func=run)
