@@ -83,9 +83,9 @@ class AppConfig(Section):
         description="fly_through: hold attitude until the gate leaves the view; pull_up: recover at once",
     )
     pass_timeout: Seconds = Field(1.0, gt=0.0, le=10.0, description="s; longest hold while passing a gate")
-    recover_time: Seconds = Field(1.5, gt=0.0, le=30.0, description="s of level attitude and hover thrust")
+    recover_time: Seconds = Field(1.0, gt=0.0, le=30.0, description="s of level attitude and hover thrust")
     recover_thrust_scale: Number = Field(
-        1.0, ge=0.8, le=1.5, description="recover thrust as a multiple of hover thrust (>1 climbs)"
+        1.1, ge=0.8, le=1.5, description="recover thrust as a multiple of hover thrust (>1 climbs)"
     )
     next_gate: bool = Field(True, description="engage again if a new gate is tracked during recover")
     max_gates: int = Field(10, ge=1, le=1000)

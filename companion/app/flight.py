@@ -251,7 +251,7 @@ class FlightApp:
             sp = out.setpoint
             if est.close:
                 if self.cfg.app.on_close == "fly_through":
-                    self._pass_start, self._pass_sp, self._gone = now, out.setpoint, 0
+                    self._pass_start, self._pass_sp, self._gone = now, self._level_flight(out.setpoint), 0
                     self.sm.go(State.PASS, f"gate close: {est.why}")
                 else:
                     self._start_recover(f"pull-up: {est.why}")
@@ -293,6 +293,17 @@ class FlightApp:
             self._log_control(frame, out, out.setpoint, (self._last_setpoint - t_avail) * 1e3)
         else:
             await self._frame(frame, box, True, t_avail)
+
+    def _level_flight(self, sp: Setpoint) -> Setpoint:
+        """The same attitude with the thrust whose vertical part carries the weight (no climb, no sink).
+
+        Close to the gate the box fills the image and the LOS rate is meaningless, so the last PN
+        thrust (often a large dive or climb demand) must not be held through the gate.
+        """
+        tilt = float(sp.R_ned_frd[2, 2])  # cos(roll) cos(pitch): the thrust axis' vertical part
+        thrust = self.ctrl.p.hover_thrust / max(tilt, 0.5)
+        return Setpoint(sp.roll_deg, sp.pitch_deg, sp.yaw_deg, min(1.0, max(self.ctrl.p.thrust_min, thrust)),
+                        sp.R_ned_frd)
 
     def _start_recover(self, why: str) -> None:
         yaw = euler_ned_deg_from_R(self.link.attitude.R_ned_frd)[2]

@@ -21,6 +21,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from collections.abc import Awaitable, Callable
+
+    from companion.app.flight import FlightApp
     from companion.app.states import Reason
     from companion.config import Config
 
@@ -121,8 +124,12 @@ async def fly(
     plot: bool = True,
     stderr: Any = sys.stderr,
     handle_signals: bool = True,
+    alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
-    """One flight, start to safe state. Returns (outcome, flight folder, summary)."""
+    """One flight, start to safe state. Returns (outcome, flight folder, summary).
+
+    ``alongside(app)`` runs next to the flight and is cancelled when it ends (tests inject faults with it).
+    """
     from companion.app.flight import FlightApp
     from companion.app.link import VehicleLink
     from companion.app.notify import Notifier
@@ -144,7 +151,13 @@ async def fly(
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, app.trip, Reason.SIGNAL, f"{signal.Signals(sig).name} received")
-        reason = await app.run()
+        side = asyncio.create_task(alongside(app)) if alongside is not None else None
+        try:
+            reason = await app.run()
+        finally:
+            if side is not None:
+                side.cancel()
+                await asyncio.gather(side, return_exceptions=True)
         summary = app.summary()
     except Exception as e:  # (set-up failed before the state machine ran)
         reason = Reason.CAMERA_FAILED if app is None else Reason.EXCEPTION

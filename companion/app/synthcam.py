@@ -222,8 +222,13 @@ class SyntheticCamera:
         else:
             image = self._render(t, p_enu, R_enu_flu, best)
         if self.on_gate is not None:
-            self.on_gate(None if best is None else best[1], None if best is None else best[2], self.scene.radius,
-                         box is not None or image is not None)
+            # Log the gate in view, else the one just passed (behind the camera): scoring needs the crossing.
+            logged = best
+            if logged is None:
+                behind = [(float((g.position(ts) - p_enu) @ R_enu_flu[:, 0]), g) for g in self.scene.gates]
+                d, g = max(behind, key=lambda x: x[0])
+                logged = (d, g, g.position(ts))
+            self.on_gate(logged[1], logged[2], self.scene.radius, box is not None)
         return Frame(self.index, t, image, box)
 
     def _render(self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray,

@@ -1,0 +1,54 @@
+"""Helpers of the flight-app tests: a real simulated PX4 on 127.0.0.1 that the real mavsdk talks to.
+
+Scenarios are short on purpose (take-off to 5 m at 3 m/s, gate 25 m away): a whole flight with
+landing takes ~20 s, a fault flight ~10 s.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from companion.config import Config, load_config
+
+FAST_PX4 = {"MPC_TKO_SPEED": 3.0, "MPC_LAND_SPEED": 1.5}
+FLIGHT_TIMEOUT = 90.0  # s: no flight in these tests may take longer (every wait has a timeout)
+
+BASE_OVERRIDES = [
+    "app.camera=synthetic",
+    "app.synthetic.render=geometric",
+    "app.synthetic.motion=linear_fast",
+    "app.synthetic.distance=25",
+    "app.takeoff_altitude=5",
+    "log.plot=false",
+    "link.connect_timeout=10",
+    "link.command_timeout=3",
+    "sim.seed=7",
+]
+
+
+def make_config(tmp_path: Path, url: str, *overrides: str) -> Config:
+    return load_config([Path(__file__).resolve().parents[2] / "config" / "app.yaml"],
+                       [*BASE_OVERRIDES, f"link.url={url}", f"log.directory={tmp_path / 'flights'}", *overrides])
+
+
+async def wait_state(app: Any, name: str, timeout: float = 30.0) -> None:
+    """Wait until the app's state machine is in (or has passed through) ``name``."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not any(h.dst.value == name for h in app.sm.history):
+        if loop.time() > deadline:
+            raise TimeoutError(f"app never reached {name} (state {app.sm.state.value})")
+        await asyncio.sleep(0.02)
+
+
+def run_flight(cfg: Config, alongside: Callable[[Any], Awaitable[None]] | None = None) -> tuple[Any, Path, dict]:
+    from companion.app.main import fly
+
+    async def main() -> tuple[Any, Path, dict]:
+        return await asyncio.wait_for(fly(cfg, plot=False, handle_signals=False, alongside=alongside),
+                                      FLIGHT_TIMEOUT)
+
+    return asyncio.run(main())
