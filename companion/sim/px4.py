@@ -81,6 +81,7 @@ DEFAULT_PX4_PARAMS: dict[str, tuple[float, int]] = {
     "MIS_TAKEOFF_ALT": (2.5, _REAL32),
     "MPC_TKO_SPEED": (1.5, _REAL32),
     "MPC_LAND_SPEED": (0.7, _REAL32),
+    "MPC_LAND_ALT2": (5.0, _REAL32),  # below this, descend at MPC_LAND_SPEED (above: MPC_Z_VEL_MAX_DN)
     "MPC_XY_VEL_MAX": (12.0, _REAL32),
     "MPC_Z_VEL_MAX_UP": (3.0, _REAL32),
     "MPC_Z_VEL_MAX_DN": (1.5, _REAL32),
@@ -500,8 +501,9 @@ class SimPX4:
             return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(), vz)
         if mode == "LAND":
             ref = np.array([self._hold_p[0], self._hold_p[1], 0.0])
-            return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(),
-                                          -self._p("MPC_LAND_SPEED"))
+            slow = s.p[2] <= self._p("MPC_LAND_ALT2")
+            vz = -self._p("MPC_LAND_SPEED") if slow else -self._p("MPC_Z_VEL_MAX_DN")
+            return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(), vz)
         return self._pos_ctrl.command(s, self._hold_p, self._hold_yaw, hover, self._param_values())
 
     def _param_values(self) -> dict[str, float]:

@@ -1,0 +1,261 @@
+"""VehicleLink through the real mavsdk 4 library over UDP on localhost, against the simulated PX4."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+from linkkit import TRUE_HOVER, connected_link, flying_link, run, setpoint
+from scipy.spatial.transform import Rotation
+
+from companion.app.link import (
+    ArmDenied,
+    CommandTimeout,
+    LinkLost,
+    OffboardDenied,
+    OffboardLost,
+    VehicleLink,
+)
+from companion.config import Config
+from companion.frames import R_ned_frd_from_enu_flu, euler_ned_deg_from_R
+from companion.sim.px4 import SimPX4
+
+
+def _angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    return math.degrees(Rotation.from_matrix(R_a.T @ R_b).magnitude())
+
+
+@pytest.mark.timeout(60)
+def test_connect_health_params_and_telemetry(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await connected_link(sim, cfg) as link:
+            # The autopilot's MPC_THR_HOVER wins over the config's 0.5.
+            assert cfg.airframe.hover_thrust != pytest.approx(TRUE_HOVER)
+            assert await link.hover_thrust() == pytest.approx(TRUE_HOVER, abs=1e-6)
+            assert link.hover_thrust_source == "autopilot"
+            assert await link.read_param("COM_OF_LOSS_T") == pytest.approx(1.0)
+            await asyncio.sleep(0.3)
+            assert link.flight_mode == "HOLD" and link.armed is False and link.landed_state == "ON_GROUND"
+            # Attitude estimate = truth within the configured estimate error (bias + noise, ~0.3 deg each).
+            R_true = R_ned_frd_from_enu_flu(Rotation.from_quat(sim.truth().q).as_matrix())
+            assert _angle_deg(link.attitude.R_ned_frd, R_true) < 3.0
+            # At rest the accelerometer reads the ground's push: -g along body down.
+            assert link.imu.accel_frd == pytest.approx([0.0, 0.0, -9.81], abs=0.3)
+            assert np.linalg.norm(link.imu.gyro_frd) < math.radians(2.0)
+            assert link.baro_altitude == pytest.approx(0.0, abs=0.6)
+            assert link.truth_for_log is not None and np.allclose(link.truth_for_log.position_ned, 0.0, atol=1e-3)
+            assert link.link_ok
+
+    run(body)
+
+
+@pytest.mark.timeout(60)
+def test_hover_thrust_falls_back_to_config_when_implausible(cfg: Config) -> None:
+    with SimPX4(cfg, px4_params={"MPC_THR_HOVER": 0.99}) as sim:
+        async def body() -> None:
+            async with await connected_link(sim, cfg) as link:
+                assert await link.hover_thrust() == cfg.airframe.hover_thrust
+                assert link.hover_thrust_source == "config"
+
+        run(body)
+
+
+@pytest.mark.timeout(90)
+def test_arm_takeoff_hold_land_disarm(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await flying_link(sim, cfg, altitude=4.0) as link:
+            assert sim.armed and sim.mode == "HOLD" and link.flight_mode == "HOLD"
+            assert link.landed_state == "IN_AIR"
+            p0 = sim.truth().p
+            assert p0[2] == pytest.approx(4.0, abs=0.3)
+            await asyncio.sleep(1.0)
+            p1 = sim.truth().p
+            assert np.linalg.norm(p1 - p0) < 0.3  # PX4's HOLD holds
+            # Barometric altitude above take-off agrees with truth (bias cancels, noise 0.1 m).
+            assert link.baro_altitude == pytest.approx(p1[2], abs=0.6)
+            await link.land()
+            await link.wait_landed_and_disarm(timeout=30.0)
+            assert link.armed is False and not sim.armed
+            assert sim.truth().on_ground and not sim.truth().ground_contact
+            assert sim.wait_event("disarm:auto_land", 1.0) is not None
+
+    run(body, 80)
+
+
+@pytest.mark.timeout(90)
+def test_offboard_attitude_setpoints_fly_as_commanded(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await flying_link(sim, cfg) as link:
+            for roll, pitch, yaw in ((8.0, -6.0, 40.0), (-5.0, 4.0, -20.0)):
+                sp = setpoint(link, roll, pitch, yaw)
+                if not link.offboard_active:
+                    await link.start_offboard(sp)
+                    assert sim.mode == "OFFBOARD"
+                for _ in range(45):  # 1.5 s at 30 Hz, as the control loop would
+                    await link.set_setpoint(sp)
+                    await asyncio.sleep(1 / 30)
+                R_true = R_ned_frd_from_enu_flu(Rotation.from_quat(sim.truth().q).as_matrix())
+                r, p, y = euler_ned_deg_from_R(R_true)
+                assert (r, p, y) == pytest.approx((roll, pitch, yaw), abs=1.5)
+                # The vehicle moves where a nose-down/right-roll tilt pushes it (NED, independent of frames.py):
+                # thrust axis = -z_body; its horizontal part is the commanded acceleration direction.
+                thrust_dir = -Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).apply([0, 0, 1.0])
+                a_ned = thrust_dir[:2] / np.linalg.norm(thrust_dir[:2])
+                v_ned = link.truth_for_log.velocity_ned[:2]
+                assert np.dot(v_ned, a_ned) > 0.0
+            await link.stop_offboard()
+            assert sim.mode == "HOLD" and link.flight_mode == "HOLD"
+            assert not link.offboard_active
+
+    run(body, 80)
+
+
+@pytest.mark.timeout(60)
+def test_deny_arming_raises_arm_denied(sim: SimPX4, cfg: Config) -> None:
+    sim.deny_arming = True
+
+    async def body() -> None:
+        async with await connected_link(sim, cfg) as link:
+            with pytest.raises(ArmDenied, match="arm refused by the autopilot: COMMAND_DENIED"):
+                await link.arm()
+            assert not sim.armed
+
+    run(body)
+
+
+@pytest.mark.timeout(60)
+def test_deny_offboard_raises_offboard_denied(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await flying_link(sim, cfg) as link:
+            sim.deny_offboard = True
+            with pytest.raises(OffboardDenied, match="offboard refused: COMMAND_DENIED"):
+                await link.start_offboard(setpoint(link))
+            assert sim.mode == "HOLD" and not link.offboard_active
+            with pytest.raises(OffboardLost):
+                await link.set_setpoint(setpoint(link))
+
+    run(body, 50)
+
+
+@pytest.mark.timeout(60)
+def test_silenced_autopilot_gives_command_timeout_and_close_does_not_hang(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        link = await connected_link(sim, cfg)
+        sim.silence_commands(True)
+        with pytest.raises(CommandTimeout, match="arm: no answer from the autopilot"):
+            await link.arm(timeout=8.0)
+        assert not sim.armed and sim.wait_event("silenced:400", 1.0) is not None
+        # A command still waiting for its ACK while we close: close() lets it time out, then destroys.
+        pending = asyncio.create_task(link.hold(timeout=8.0))
+        await asyncio.sleep(0.1)
+        await link.close()
+        assert not link._inflight
+        assert link.events[-1][1:] == ("closed", {})
+        with pytest.raises(CommandTimeout):
+            await pending
+
+    run(body, 50)
+
+
+@pytest.mark.timeout(60)
+def test_drop_link_fires_failsafe_and_link_lost(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await flying_link(sim, cfg) as link:
+            sp = setpoint(link)
+            await link.start_offboard(sp)
+
+            async def control_loop() -> Exception:
+                while True:  # 30 Hz fresh setpoints until the link says stop
+                    try:
+                        await link.set_setpoint(sp)
+                    except Exception as e:
+                        return e
+                    await asyncio.sleep(1 / 30)
+
+            loop = asyncio.create_task(control_loop())
+            await asyncio.sleep(0.3)
+            sim.drop_link(True)
+            # The vehicle stops hearing setpoints (MAVSDK's resends are lost too): PX4's failsafe -> HOLD.
+            ev = await asyncio.to_thread(sim.wait_event, "failsafe:offboard_loss", 5.0)
+            assert ev is not None
+            t_sp = sim.last_setpoint()[0]
+            assert ev[0] - t_sp >= sim.param("COM_OF_LOSS_T") - 1e-9
+            # The app side notices the silence: the control loop gets LinkLost.
+            err = await asyncio.wait_for(loop, cfg.link.link_lost_timeout + 3.0)
+            assert isinstance(err, LinkLost) and "vehicle link lost: no telemetry" in str(err)
+            assert not link.link_ok
+            sim.drop_link(False)
+            await link.wait_link_ok(5.0)
+            await link.wait_mode("HOLD", 5.0)
+            with pytest.raises(OffboardLost):  # and it never goes back to OFFBOARD by itself
+                await link.set_setpoint(sp)
+            assert sim.mode == "HOLD"
+            assert [e for e in link.events if e[1] == "link_lost"]
+            assert [e for e in link.events if e[1] == "link_restored"]
+
+    run(body, 50)
+
+
+@pytest.mark.timeout(60)
+def test_pilot_takeover_is_seen_and_never_overridden(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await flying_link(sim, cfg) as link:
+            sp = setpoint(link, pitch=-5.0)
+            await link.start_offboard(sp)
+            for _ in range(10):
+                await link.set_setpoint(sp)
+                await asyncio.sleep(1 / 30)
+            sim.pilot_takeover("POSCTL")
+            await link.wait_mode("POSCTL", 3.0)
+            with pytest.raises(OffboardLost, match="now POSCTL"):
+                for _ in range(30):
+                    await link.set_setpoint(sp)
+                    await asyncio.sleep(1 / 30)
+            await link.stop_offboard()  # must not command HOLD over the pilot
+            await asyncio.sleep(1.0)
+            assert sim.mode == "POSCTL"
+            t_takeover = next(t for t, what in sim.events if what == "mode:POSCTL:pilot")
+            assert not [w for t, w in sim.events if t > t_takeover and w.startswith("mode:")]
+            assert [e for e in link.events if e[1] == "offboard_lost"]
+            assert np.linalg.norm(sim.truth().v) < 3.0  # POSCTL brakes and holds
+
+    run(body, 50)
+
+
+@pytest.mark.timeout(60)
+def test_watchdog_hands_over_to_hold_when_setpoints_stop(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await flying_link(sim, cfg) as link:
+            await link.start_offboard(setpoint(link))
+            n0 = sim.setpoint_count
+            # The control loop goes quiet. MAVSDK alone would keep resending, and PX4's failsafe would never
+            # fire; the link's watchdog stops offboard instead.
+            await link.wait_mode("HOLD", cfg.safety.perception_stall_timeout + 3.0)
+            assert sim.wait_event("mode:HOLD:command", 1.0) is not None
+            assert sim.wait_event("failsafe:offboard_loss", 0.0) is None
+            assert sim.setpoint_count > n0  # setpoints kept flowing without fresh control output
+            assert [e for e in link.events if e[1] == "watchdog"]
+            with pytest.raises(OffboardLost, match="setpoint watchdog"):
+                await link.set_setpoint(setpoint(link))
+
+    run(body, 50)
+
+
+@pytest.mark.timeout(30)
+def test_bad_setpoints_and_urls_are_one_line_errors(sim: SimPX4, cfg: Config) -> None:
+    async def body() -> None:
+        async with await connected_link(sim, cfg) as link:
+            with pytest.raises(ValueError, match="non-finite value refused"):
+                await link.start_offboard(setpoint(link, thrust=math.nan))
+            with pytest.raises(ValueError, match="need roll_deg, pitch_deg, yaw_deg, thrust"):
+                await link.set_setpoint(object())
+        bad = VehicleLink.from_config(cfg)
+        from companion.app.link import ConnectFailed
+
+        with pytest.raises(ConnectFailed, match=r"no autopilot heard on udpout://127\.0\.0\.1:9 within 0\.5 s"):
+            await bad.connect("udpout://127.0.0.1:9", timeout=0.5)
+        await bad.close()
+
+    run(body, 25)

@@ -1,0 +1,172 @@
+"""The simulated PX4 on its own, driven by a bare pymavlink client (no MAVSDK, so nothing is resent)."""
+
+from __future__ import annotations
+
+import math
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from linkkit import TRUE_HOVER, RawGcs
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.config import Config
+from companion.sim.px4 import SimPX4
+
+LEVEL = [1.0, 0.0, 0.0, 0.0]
+OFFBOARD = (mavlink.MAV_CMD_DO_SET_MODE, 1.0, 6.0, 0.0)
+
+
+@pytest.mark.timeout(30)
+def test_offboard_needs_setpoints_and_fails_safe_when_they_stop(sim: SimPX4, gcs: RawGcs) -> None:
+    gcs.command(*OFFBOARD)
+    assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE) == mavlink.MAV_RESULT_DENIED
+    assert sim.mode == "HOLD"
+    assert sim.wait_event("offboard_denied:no_setpoints", 1.0) is not None
+
+    gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == mavlink.MAV_RESULT_ACCEPTED
+    for _ in range(5):
+        gcs.attitude_setpoint(LEVEL, 0.2)
+    assert sim.wait_for(lambda: sim.setpoint_count >= 5, 2.0)
+    gcs.command(*OFFBOARD)
+    # The heartbeat (sent on the change, before the ACK) reports it the PX4 way: custom_mode = 6 << 16.
+    hb = gcs.recv(lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode == 6 << 16, 2.0)
+    assert hb is not None and hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4 and hb.get_srcComponent() == 1
+    assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE) == mavlink.MAV_RESULT_ACCEPTED
+    assert sim.wait_event("mode:OFFBOARD:command", 1.0) is not None
+
+    # Setpoints stop (nothing resends them): the failsafe fires no earlier than COM_OF_LOSS_T after the last.
+    t_last, _, _ = sim.last_setpoint()
+    ev = sim.wait_event("failsafe:offboard_loss", 5.0)
+    assert ev is not None
+    assert ev[0] - t_last >= sim.param("COM_OF_LOSS_T") - 1e-9
+    assert sim.wait_event("mode:HOLD:failsafe", 1.0) is not None
+    assert sim.mode == "HOLD"
+
+
+@pytest.mark.timeout(30)
+def test_attitude_setpoint_is_flown_in_offboard(cfg: Config, gcs: RawGcs, sim: SimPX4) -> None:
+    """SET_ATTITUDE_TARGET (NED/FRD wxyz) becomes the vehicle's true attitude (checked in ENU/FLU truth)."""
+    from scipy.spatial.transform import Rotation
+
+    gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == mavlink.MAV_RESULT_ACCEPTED
+    # Yaw 30 deg (NED: from north toward east), pitch 10 deg nose up, enough thrust to lift off.
+    r_ned = Rotation.from_euler("ZYX", [30.0, 10.0, 0.0], degrees=True)
+    x, y, z, w = r_ned.as_quat()
+    gcs.attitude_setpoint([w, x, y, z], 0.45)
+    gcs.command(*OFFBOARD)
+    assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE) == mavlink.MAV_RESULT_ACCEPTED
+    for _ in range(40):  # 1 s at 40 Hz
+        gcs.attitude_setpoint([w, x, y, z], 0.45)
+        gcs.recv(lambda m: False, 0.025)
+    s = sim.truth()
+    assert not s.on_ground and s.p[2] > 0.1  # thrust above hover (TRUE_HOVER) lifts it
+    # Independent check: body x (forward) in ENU must point 30 deg east of north, 10 deg up.
+    fwd = Rotation.from_quat(s.q).apply([1.0, 0.0, 0.0])
+    heading_from_north = math.degrees(math.atan2(fwd[0], fwd[1]))
+    elevation = math.degrees(math.asin(fwd[2]))
+    assert heading_from_north == pytest.approx(30.0, abs=1.0)
+    assert elevation == pytest.approx(10.0, abs=1.0)
+    assert TRUE_HOVER < 0.45
+
+
+@pytest.mark.timeout(20)
+def test_params_read_set_and_int_encoding(sim: SimPX4, gcs: RawGcs) -> None:
+    gcs.send(gcs.mav.param_request_read_encode(1, 1, b"MPC_THR_HOVER", -1))
+    m = gcs.recv(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "MPC_THR_HOVER", 2.0)
+    assert m is not None and m.param_value == pytest.approx(TRUE_HOVER, abs=1e-6)
+    assert m.param_type == mavlink.MAV_PARAM_TYPE_REAL32
+    # PX4 sends INT32 parameters bytewise inside the float field.
+    gcs.send(gcs.mav.param_request_read_encode(1, 1, b"COM_OBL_RC_ACT", -1))
+    m = gcs.recv(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OBL_RC_ACT", 2.0)
+    assert m is not None and m.param_type == mavlink.MAV_PARAM_TYPE_INT32
+    assert int(np.array([m.param_value], "<f4").view("<i4")[0]) == 5
+    gcs.send(gcs.mav.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.4, mavlink.MAV_PARAM_TYPE_REAL32))
+    m = gcs.recv(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OF_LOSS_T", 2.0)
+    assert m is not None and m.param_value == pytest.approx(0.4)
+    assert sim.param("COM_OF_LOSS_T") == pytest.approx(0.4)
+
+
+@pytest.mark.timeout(20)
+def test_switches_deny_arming_and_silence(sim: SimPX4, gcs: RawGcs) -> None:
+    sim.deny_arming = True
+    gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == mavlink.MAV_RESULT_DENIED
+    assert not sim.armed
+    sim.deny_arming = False
+    sim.silence_commands(True)
+    gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, timeout=1.0) is None
+    assert not sim.armed and sim.wait_event("silenced:400", 1.0) is not None
+    sim.silence_commands(False)
+    gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == mavlink.MAV_RESULT_ACCEPTED
+    assert sim.armed
+
+
+@pytest.mark.timeout(20)
+def test_drop_link_silences_both_directions(sim: SimPX4, gcs: RawGcs) -> None:
+    assert gcs.recv(lambda m: m.get_type() == "ATTITUDE_QUATERNION", 2.0) is not None
+    sim.drop_link(True)
+    gcs.recv(lambda m: False, 0.2)  # let in-flight datagrams drain
+    assert gcs.recv(lambda m: True, 0.5) is None
+    gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    gcs.recv(lambda m: False, 0.3)
+    assert not sim.armed
+    sim.drop_link(False)
+    gcs.heartbeat()
+    assert gcs.recv(lambda m: m.get_type() == "ATTITUDE_QUATERNION", 2.0) is not None
+
+
+def test_port_is_exclusive(sim: SimPX4) -> None:
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as MAVSDK's udpin listener does
+    try:
+        with pytest.raises(OSError):
+            other.bind(("127.0.0.1", sim.port))
+    finally:
+        other.close()
+    assert sim.url_for_mavsdk == f"udpout://127.0.0.1:{sim.port}"
+
+
+def test_unknown_px4_param_is_one_clear_error() -> None:
+    with pytest.raises(ValueError, match="unknown PX4 parameter 'MPC_THR_HOVR'"):
+        SimPX4(px4_params={"MPC_THR_HOVR": 0.4})
+
+
+@pytest.mark.timeout(30)
+def test_process_entry_point_prints_port_obeys_stdin_and_sigterm() -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "companion.sim.px4", "--port", "0", "--param", "MPC_THR_HOVER=0.44"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        line = proc.stdout.readline()  # the process prints its port first thing
+        assert line.startswith("PORT "), line + proc.stderr.read()
+        port = int(line.split()[1])
+        gcs = RawGcs(port)
+        gcs.heartbeat()
+        gcs.send(gcs.mav.param_request_read_encode(1, 1, b"MPC_THR_HOVER", -1))
+        m = gcs.recv(lambda m: m.get_type() == "PARAM_VALUE", 3.0)
+        assert m is not None and m.param_value == pytest.approx(0.44, abs=1e-6)
+        proc.stdin.write("deny_arming 1\n")
+        proc.stdin.flush()
+        assert proc.stdout.readline().strip() == "OK"
+        gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+        assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == mavlink.MAV_RESULT_DENIED
+        proc.stdin.write("bogus\n")
+        proc.stdin.flush()
+        assert proc.stdout.readline().startswith("ERROR unknown command 'bogus'")
+        gcs.close()
+        proc.terminate()
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=5)
