@@ -1,14 +1,53 @@
-"""Config section of the perception pipeline (detector, tracker, camera source)."""
+"""Config section of the perception pipeline (detector, tracker policy, box smoothing, camera source)."""
 
 from __future__ import annotations
 
-from pydantic import Field
+from typing import Literal
 
-from companion.configbase import Number, Section
+from pydantic import Field, model_validator
+
+from companion.configbase import Number, Seconds, Section
 
 
 class PerceptionConfig(Section):
+    # Detector (perception/detector.py)
     model: str = Field("", description="path to a YOLOv8-layout ONNX file; empty = the shipped gate detector")
     class_name: str = Field("gate", description="class of the target in the model's class list")
+    classes: list[str] = Field(
+        default_factory=list,
+        description="the model's class list; empty = from <model>.json, the ONNX metadata, or [class_name]",
+    )
+    input_size: int = Field(0, ge=0, le=4096, description="px, square model input; 0 = from the model")
     confidence: Number = Field(0.35, gt=0.0, lt=1.0)
     nms_iou: Number = Field(0.5, gt=0.0, lt=1.0)
+    backend: Literal["cv2", "onnxruntime"] = Field("cv2", description="onnxruntime is faster if installed")
+    threads: int = Field(1, ge=0, le=64, description="inference threads; 0 = library default")
+
+    # Tracker and policy (perception/tracker.py, perception/pipeline.py)
+    tracker: Literal["detect", "nanotrack"] = Field(
+        "detect",
+        description="detect = detector every frame + association + Kalman box (weight-free); "
+        "nanotrack = cv2.TrackerNano between detections (needs the two ONNX files below)",
+    )
+    nanotrack_backbone: str = Field("", description="NanoTrack backbone ONNX (tracker: nanotrack)")
+    nanotrack_neckhead: str = Field("", description="NanoTrack neck/head ONNX (tracker: nanotrack)")
+    redetect_every: int = Field(5, ge=1, le=1000, description="frames between detections when a tracker runs")
+    redetect_below: Number = Field(0.5, ge=0.0, le=1.0, description="tracker score that forces a detection")
+    max_jump: Number = Field(
+        0.25, gt=0.0, le=2.0, description="centre jump (fraction of the image diagonal) rejected as a switch"
+    )
+    min_iou: Number = Field(0.05, ge=0.0, le=1.0, description="association: IoU with the prediction, or ...")
+    coast_time: Seconds = Field(0.3, ge=0.0, le=10.0, description="s; Kalman prediction kept through misses")
+    confirm_frames: int = Field(2, ge=1, le=30, description="consecutive detections that (re)acquire a target")
+    smoothing: Number = Field(
+        0.3, ge=0.0, le=1.0, description="box smoothing 0..1 (0 = raw measurement, 1 = heavy); sets Kalman noise"
+    )
+
+    # Camera source (perception/sources.py)
+    source: str = Field("0", description="V4L2 index, video file, GStreamer pipeline, rtsp:// URL or 'synthetic'")
+
+    @model_validator(mode="after")
+    def _check(self) -> PerceptionConfig:
+        if self.tracker == "nanotrack" and not (self.nanotrack_backbone and self.nanotrack_neckhead):
+            raise ValueError("tracker: nanotrack needs nanotrack_backbone and nanotrack_neckhead (two ONNX files)")
+        return self

@@ -1,0 +1,201 @@
+"""Frame -> the target's box (or None): detector + tracker policy + box smoothing.
+
+Policy (one state machine, both tracker kinds):
+
+* searching: run the detector every frame; ``confirm_frames`` consecutive detections that agree
+  with each other (re)acquire the target (a single false alarm does not).
+* tracking: predict the box with the Kalman filter; measure it with the detector (every frame for
+  ``tracker: detect``; every ``redetect_every`` frames or whenever NanoTrack's score drops below
+  ``redetect_below`` for ``tracker: nanotrack``, the tracker in between); a measurement that
+  neither overlaps the prediction nor lies within ``max_jump`` of it is a jump and is rejected.
+  The Kalman-filtered box (smoothing before the LOS) is the output.
+* misses: the Kalman prediction is output for up to ``coast_time`` with decaying confidence, then
+  the target is lost and the search starts again.
+
+The output box's ``t`` is the frame's capture time.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from perception.detector import Detector
+from perception.tracker import BoxKalman, NanoTracker, associate, iou
+from perception.types import BoundingBox
+
+if TYPE_CHECKING:
+    from companion.config import Config
+    from companion.config_perception import PerceptionConfig
+
+
+@dataclass
+class PipelineStats:
+    frames: int = 0
+    detector_runs: int = 0
+    tracker_runs: int = 0
+    boxes: int = 0  # frames with an output box
+    measured: int = 0  # frames whose box was corrected by a measurement
+    coasted: int = 0  # frames whose box is a prediction
+    rejected_jumps: int = 0
+    acquisitions: int = 0
+    losses: int = 0
+    detector_ms: list[float] = field(default_factory=list)
+    tracker_ms: list[float] = field(default_factory=list)
+    total_ms: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, float | int]:
+        def med(x: list[float]) -> float:
+            return round(float(np.median(x)), 3) if x else 0.0
+
+        return {
+            "frames": self.frames, "detector_runs": self.detector_runs, "tracker_runs": self.tracker_runs,
+            "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted,
+            "rejected_jumps": self.rejected_jumps, "acquisitions": self.acquisitions, "losses": self.losses,
+            "detector_ms_median": med(self.detector_ms), "tracker_ms_median": med(self.tracker_ms),
+            "pipeline_ms_median": med(self.total_ms),
+        }
+
+
+class Pipeline:
+    """``process(frame, t) -> BoundingBox | None`` for one target; ``stats`` counts what happened."""
+
+    def __init__(self, detector: Detector, pc: PerceptionConfig, width: int, height: int,
+                 tracker: NanoTracker | None = None) -> None:
+        self.det = detector
+        self.pc = pc
+        self.width, self.height = int(width), int(height)
+        self.tracker = tracker
+        self.max_jump_px = float(pc.max_jump) * math.hypot(width, height)
+        self.stats = PipelineStats()
+        self.reset()
+
+    @classmethod
+    def from_config(cls, cfg: Config, detector: Detector | None = None) -> Pipeline:
+        pc = cfg.perception
+        det = detector if detector is not None else Detector.from_config(pc)
+        trk = NanoTracker(pc.nanotrack_backbone, pc.nanotrack_neckhead) if pc.tracker == "nanotrack" else None
+        return cls(det, pc, cfg.camera.width, cfg.camera.height, trk)
+
+    def reset(self) -> None:
+        self.kf: BoxKalman | None = None
+        self.t_prev: float | None = None
+        self.t_measured: float | None = None
+        self.candidate: BoundingBox | None = None
+        self.candidate_count = 0
+        self.frame_index = 0
+        self.last_conf = 0.0
+        self.last_detections: list[BoundingBox] = []
+        if self.tracker is not None:
+            self.tracker.active = False
+
+    @property
+    def tracking(self) -> bool:
+        return self.kf is not None
+
+    def process(self, frame: np.ndarray, t: float) -> BoundingBox | None:
+        t0 = time.perf_counter()
+        st = self.stats
+        st.frames += 1
+        self.frame_index += 1
+        dt = (t - self.t_prev) if self.t_prev is not None else 0.0
+        self.t_prev = t
+        out = self._track(frame, t, dt) if self.kf is not None else self._search(frame, t)
+        if out is not None:
+            out = self._clip(out)
+        if out is not None:
+            st.boxes += 1
+        st.total_ms.append((time.perf_counter() - t0) * 1e3)
+        return out
+
+    # -- states ------------------------------------------------------------------------------
+
+    def _detect(self, frame: np.ndarray, t: float) -> list[BoundingBox]:
+        dets = self.det.detect(frame, t)
+        self.stats.detector_runs += 1
+        self.stats.detector_ms.append(self.det.last_ms)
+        self.last_detections = dets
+        return dets
+
+    def _search(self, frame: np.ndarray, t: float) -> BoundingBox | None:
+        dets = self._detect(frame, t)
+        if not dets:
+            self.candidate, self.candidate_count = None, 0
+            return None
+        best = dets[0]
+        if self.candidate is not None:
+            cont, _ = associate(self.candidate, dets, self.max_jump_px, self.pc.min_iou)
+            if cont is not None:
+                best = cont
+                self.candidate_count += 1
+            else:
+                self.candidate_count = 1
+        else:
+            self.candidate_count = 1
+        self.candidate = best
+        if self.candidate_count < self.pc.confirm_frames:
+            return None
+        # Acquired: start the box filter at this detection.
+        self.kf = BoxKalman(best, self.pc.smoothing)
+        self.t_measured = t
+        self.last_conf = best.confidence
+        self.candidate, self.candidate_count = None, 0
+        self.stats.acquisitions += 1
+        self.stats.measured += 1
+        if self.tracker is not None:
+            self.tracker.init(frame, best)
+        return BoundingBox(best.cx, best.cy, best.w, best.h, best.confidence, t)
+
+    def _track(self, frame: np.ndarray, t: float, dt: float) -> BoundingBox | None:
+        assert self.kf is not None
+        pred = self.kf.predict(dt)
+        meas: BoundingBox | None = None
+        run_detector = True
+        if self.tracker is not None and self.tracker.active:
+            t1 = time.perf_counter()
+            tb, score = self.tracker.update(frame, t)
+            self.stats.tracker_runs += 1
+            self.stats.tracker_ms.append((time.perf_counter() - t1) * 1e3)
+            due = self.frame_index % self.pc.redetect_every == 0
+            near = tb is not None and (
+                iou(tb, pred) >= self.pc.min_iou or math.hypot(tb.cx - pred.cx, tb.cy - pred.cy) <= self.max_jump_px
+            )
+            if near and score >= self.pc.redetect_below and not due:
+                meas, run_detector = tb, False
+        if run_detector:
+            dets = self._detect(frame, t)
+            meas, rejected = associate(pred, dets, self.max_jump_px, self.pc.min_iou)
+            self.stats.rejected_jumps += rejected
+            if meas is not None and self.tracker is not None:
+                self.tracker.init(frame, meas)
+        if meas is not None:
+            box = self.kf.correct(meas)
+            self.t_measured = t
+            self.last_conf = meas.confidence
+            self.stats.measured += 1
+            return BoundingBox(box.cx, box.cy, box.w, box.h, meas.confidence, t)
+        # Miss: coast on the prediction, then give up and search again.
+        since = t - (self.t_measured if self.t_measured is not None else t)
+        if since > self.pc.coast_time or self.pc.coast_time <= 0.0:
+            self.kf = None
+            self.stats.losses += 1
+            if self.tracker is not None:
+                self.tracker.active = False
+            return None
+        self.stats.coasted += 1
+        decay = 1.0 - since / self.pc.coast_time
+        return BoundingBox(pred.cx, pred.cy, pred.w, pred.h, self.last_conf * decay, t)
+
+    def _clip(self, b: BoundingBox) -> BoundingBox | None:
+        """Clip to the image; a box whose centre left the image is no box (the LOS would be invented)."""
+        x0, y0, x1, y1 = b.xyxy
+        x0, y0 = max(0.0, x0), max(0.0, y0)
+        x1, y1 = min(float(self.width), x1), min(float(self.height), y1)
+        if x1 - x0 < 1.0 or y1 - y0 < 1.0:
+            return None
+        c = BoundingBox.from_xyxy(x0, y0, x1, y1, b.confidence, b.t)
+        return c if c.is_valid(self.width, self.height) else None
