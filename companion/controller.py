@@ -141,7 +141,7 @@ class PNController:
         dt = t - self._t_prev
         if dt > self.p.max_dt:
             return None  # long gap: the filter restarts anyway
-        angle = math.atan2(float(np.linalg.norm(guidance._cross(l_enu, self._l_prev))), float(l_enu @ self._l_prev))
+        angle = guidance.angle_between(l_enu, self._l_prev)
         if angle / dt <= self.p.max_los_rate:
             self._jumps = 0
             return None

@@ -39,12 +39,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.frames import F_FRD_FLU, P_NED_ENU, euler_ned_deg_from_R, quat_wxyz_from_R
+from companion.frames import euler_ned_deg_from_R, quat_wxyz_from_R
 
 G = 9.81
 g_W = np.array([0.0, 0.0, -G])
 
 _EPS = 1e-12
+_ENU_TO_NED_ROWS = [1, 0, 2]
+_NED_FRD_SIGNS = np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])  # row signs of P_NED_ENU x column signs of F_FRD_FLU
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,9 +83,12 @@ class ThrustAttitude:
     fallback: bool  # True when even s = 0 was infeasible (optical axis on the LOS)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross costs ~10 us on 3-vectors; this is on the 30 Hz path.
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+def angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two vectors, accurate for small and large angles alike."""
+    ax, ay, az = a.tolist()
+    bx, by, bz = b.tolist()
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
 
 
 def los_rate(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> LosRate:  # noqa: E741
@@ -92,16 +97,19 @@ def los_rate(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> LosRate:  #
     ``lambda_dot = arccos(l . l_prev) / dt`` (the paper's ``f_est = 1/dt``), computed as
     ``atan2(|l x l_prev|, l . l_prev)`` which is exact for small angles where arccos is not.
     """
-    zero = np.zeros(3)
     if l_prev is None or not (dt > 0.0) or not math.isfinite(dt):
-        return LosRate(0.0, zero, zero)
-    k_l = _cross(l, l_prev)
-    s = math.sqrt(float(k_l @ k_l))
+        return LosRate(0.0, np.zeros(3), np.zeros(3))
+    # Scalar math: numpy's per-call overhead on 3-vectors dominates this 30 Hz path.
+    lx, ly, lz = l.tolist()
+    px, py, pz = l_prev.tolist()
+    kx, ky, kz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px  # k_l = l x l_prev
+    s = math.sqrt(kx * kx + ky * ky + kz * kz)
     if s < _EPS:
-        return LosRate(0.0, k_l, zero)
-    angle = math.atan2(s, float(l @ l_prev))
-    n = _cross(l, k_l) / s  # |l x k_l| = |k_l| because k_l is normal to the unit vector l
-    return LosRate(angle / dt, k_l, n)
+        return LosRate(0.0, np.array([kx, ky, kz]), np.zeros(3))
+    angle = math.atan2(s, lx * px + ly * py + lz * pz)
+    # n = l x k_l / |k_l|: |l x k_l| = |k_l| because k_l is normal to the unit vector l.
+    n = np.array([ly * kz - lz * ky, lz * kx - lx * kz, lx * ky - ly * kx]) / s
+    return LosRate(angle / dt, np.array([kx, ky, kz]), n)
 
 
 def pn_demand(lambda_dot: float, n: np.ndarray, k_pn: float, v_rel_bar: float) -> np.ndarray:
@@ -115,20 +123,21 @@ def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # n
     Singular when the LOS is vertical (``e_z x l = 0``): then the y axis is taken from
     ``y_ref`` (default world y) made normal to ``l``, so the frame stays orthonormal.
     """
-    y = np.array([-l[1], l[0], 0.0])  # e_z x l
-    ny = math.hypot(y[0], y[1])
+    lx, ly, lz = l.tolist()
+    ny = math.hypot(lx, ly)
     if ny > 1e-9:
-        y /= ny
+        yx, yy, yz = -ly / ny, lx / ny, 0.0  # e_z x l, normalised
     else:
-        ref = np.array([0.0, 1.0, 0.0]) if y_ref is None else np.asarray(y_ref, dtype=float)
-        y = ref - (ref @ l) * l
-        ny = math.sqrt(float(y @ y))
-        if ny < 1e-9:  # y_ref parallel to l: any normal will do
-            y = np.array([1.0, 0.0, 0.0]) - l[0] * l
-            ny = math.sqrt(float(y @ y))
-        y /= ny
-    z = _cross(l, y)
-    return np.column_stack((l, y, z))
+        rx, ry, rz = (0.0, 1.0, 0.0) if y_ref is None else np.asarray(y_ref, dtype=float).tolist()
+        d = rx * lx + ry * ly + rz * lz
+        yx, yy, yz = rx - d * lx, ry - d * ly, rz - d * lz
+        n = math.sqrt(yx * yx + yy * yy + yz * yz)
+        if n < 1e-9:  # y_ref parallel to l: any normal will do
+            yx, yy, yz = 1.0 - lx * lx, -lx * ly, -lx * lz
+            n = math.sqrt(yx * yx + yy * yy + yz * yz)
+        yx, yy, yz = yx / n, yy / n, yz / n
+    zx, zy, zz = ly * yz - lz * yy, lz * yx - lx * yz, lx * yy - ly * yx  # l x y
+    return np.array([[lx, yx, zx], [ly, yy, zy], [lz, yz, zz]])
 
 
 def roll_pitch(f_th: float, t_y: float, t_z: float) -> tuple[float, float]:
@@ -178,14 +187,10 @@ def demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidancePara
     return max(s, 0.0)
 
 
-def _R_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _R_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
+    """eq:meth_body_pn_rotation ``R_B^PN = R_y(phi) R_x(theta)``, multiplied out."""
+    cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
+    return np.array([[cp, sp * st, sp * ct], [0.0, ct, -st], [-sp, cp * st, cp * ct]])
 
 
 def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
@@ -196,20 +201,19 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
     ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world frame).
     """
     R_W_PN = pn_frame(l, y_ref)
-    y_ax, z_ax = R_W_PN[:, 1], R_W_PN[:, 2]
-    a_y, a_z = float(y_ax @ a_n), float(z_ax @ a_n)  # n_y a_n, n_z a_n
-    g_y, g_z = float(y_ax @ g_W), float(z_ax @ g_W)  # g_y^PN (0 unless singular), g_z^PN
+    ax, ay, az = a_n.tolist()
+    (_, yx, zx), (_, yy, zy), (_, yz, zz) = R_W_PN.tolist()
+    a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
+    g_y, g_z = -G * yz, -G * zz  # g^PN = R_W^PN g: its y part is 0 unless the LOS is vertical
     s = demand_scale(a_y, a_z, g_y, g_z, p)
     if s is None:
-        t_z = -g_z
-        f = min(p.f_max, max(p.f_min, t_z))
+        f = min(p.f_max, max(p.f_min, -g_z))
         return ThrustAttitude(f, 0.0, 0.0, R_W_PN, 0.0, True)
     t_y, t_z = s * a_y - g_y, s * a_z - g_z
     f = min(p.f_max, t_z / math.cos(p.gamma_bar))
     f = max(f, p.f_min)  # only rounding can put it below (constraint (a))
     theta, phi = roll_pitch(f, t_y, t_z)
-    R_W_B = R_W_PN @ _R_y(phi) @ _R_x(theta)
-    return ThrustAttitude(f, phi, theta, R_W_B, s, False)
+    return ThrustAttitude(f, phi, theta, R_W_PN @ _R_y_R_x(phi, theta), s, False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -237,7 +241,7 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
     """The one conversion from the paper's frames (ENU/FLU) to a MAVSDK setpoint (NED/FRD)."""
-    R_ned_frd = P_NED_ENU @ R_W_B @ F_FRD_FLU
+    R_ned_frd = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS  # = P_NED_ENU @ R_W_B @ F_FRD_FLU, without two matmuls
     roll, pitch, yaw = euler_ned_deg_from_R(R_ned_frd)
     return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R_ned_frd)
 
