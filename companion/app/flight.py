@@ -152,7 +152,7 @@ class FlightApp:
         return self.sm.outcome
 
     def summary(self) -> dict[str, Any]:
-        lat = np.array(self.stats.latencies_ms) if self.stats.latencies_ms else np.array([math.nan])
+        lat = np.array(self.stats.latencies_ms)
         last = self.sm.history[-1] if self.sm.history else None
         return {
             "outcome": self.sm.state.value,
@@ -162,8 +162,8 @@ class FlightApp:
             "gates_passed": self.stats.gates_passed,
             "frames": self.stats.frames,
             "setpoints": self.stats.setpoints,
-            "frame_to_setpoint_ms": {"p50": float(np.nanpercentile(lat, 50)), "p95": float(np.nanpercentile(lat, 95)),
-                                     "n": len(self.stats.latencies_ms)},
+            "frame_to_setpoint_ms": {"p50": float(np.percentile(lat, 50)) if lat.size else None,
+                                     "p95": float(np.percentile(lat, 95)) if lat.size else None, "n": int(lat.size)},
             "cpu_percent": 100.0 * self.stats.cpu_s / self.stats.wall_s if self.stats.wall_s > 0 else None,
             "states": [h.dst.value for h in self.sm.history],
         }
