@@ -74,6 +74,10 @@ class SimCameraConfig(Section):
     delay: Seconds = Field(0.0, ge=0.0, le=2.0, description="box of frame t arrives at t + delay")
     drop_prob: Number = Field(0.0, ge=0.0, le=1.0, description="probability a frame gives no box")
     min_box: Pixels = Field(2.0, ge=0.0, le=100.0, description="boxes smaller than this are not detected, px")
+    attitude_at_capture: bool = Field(
+        True, description="a delayed box reaches the controller with the attitude estimate of its capture "
+        "time (True) or of its arrival time (False, a pipeline without time matching)"
+    )
     clip_box: bool = Field(
         False, description="False: box centred on the projected gate centre (paper); True: ring extent clipped "
         "to the image, like a detector's box of a partly visible ring"

@@ -167,10 +167,15 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         elif t - last_seen > fov_timeout:
             outcome = RunOutcome(False, None, None, "fov_lost")
             break
-        pending.append((t + delay, t, box))
         q_est = sensors.attitude_wxyz_ned_frd(s.q)
+        # The controller's contract: the box of the frame captured at t_cap with the attitude at t_cap
+        # (the app matches telemetry to the frame time). attitude_at_capture=False instead pairs the
+        # late box with the attitude at arrival, which is what a naive pipeline does.
+        pending.append((t + delay, t, box, q_est))
         while pending and pending[0][0] <= t + 1e-9:
-            _, t_cap, b = pending.popleft()
+            _, t_cap, b, q_cap = pending.popleft()
+            if sim.camera.attitude_at_capture:
+                q_est = q_cap
             if spec.controller == "pn":
                 out = ctrl.step(t_cap, b, q_est)
             elif spec.controller == "pn_true_vrel":
