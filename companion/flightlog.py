@@ -122,6 +122,7 @@ class FlightLog:
             "start_utc": dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
             "host": socket.gethostname(),
             "pid": os.getpid(),
+            "t0_monotonic": self.t0,  # flight time 0 on the host's monotonic clock
             "argv": list(argv if argv is not None else sys.argv),
             "topics": {k: list(v) for k, v in TOPICS.items()},
         }
