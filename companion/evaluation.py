@@ -315,6 +315,58 @@ def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0,
     }
 
 
+# -- Bayesian tuning (paper IV-D) ----------------------------------------------------------------------
+
+REWARDS = {"dt": (10.0, 3.0, 0.0), "d": (0.0, 5.0, 3.0)}  # (c_t, c_d, c) of eq:meth_bo_reward
+PAPER_TUNED = {"dt": {"k_pn": 2.10, "gamma_bar": 21.05}, "d": {"k_pn": 1.11, "gamma_bar": 8.91}}
+TUNE_MOTIONS = ("linear_slow", "linear_fast", "planar", "knot")  # the paper leaves out stationary
+
+
+def run_reward(run: dict, reward: str) -> float:
+    """eq:meth_bo_reward ``max(0, c_t / t_gate - c_d d_center + c)``; a run that never crossed scores 0."""
+    c_t, c_d, c = REWARDS[reward]
+    if not run["crossed"]:
+        return 0.0
+    return max(0.0, c_t / run["t_gate_s"] - c_d * run["d_center_m"] + c)
+
+
+def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str = "dt", runs_per_motion: int = 2,
+         seed: int = 0, n_jobs: int = 2, progress: bool = True) -> dict:
+    """Bayesian optimisation of (k_pn, gamma_bar) as in paper V-A: GP with a Matern 2.5 kernel
+    (bayes_opt's default), upper-confidence-bound acquisition, k_pn in [0.3, 3], gamma_bar in [5, 30] deg,
+    each iteration ``runs_per_motion`` runs of every moving-gate motion (fresh initial conditions)."""
+    from bayes_opt import BayesianOptimization, acquisition
+    from tqdm import tqdm
+
+    if reward not in REWARDS:
+        raise ValueError(f"tune: unknown reward {reward!r} (use one of: {', '.join(REWARDS)})")
+    bounds = {"k_pn": (0.3, 3.0), "gamma_bar": (5.0, 30.0)}
+    opt = BayesianOptimization(f=None, pbounds=bounds, random_state=seed, verbose=0, allow_duplicate_points=True,
+                               acquisition_function=acquisition.UpperConfidenceBound(kappa=2.576, random_state=seed))
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 4]))
+    cfg = with_overrides(cfg, {"sim": {"seed": seed}})
+    history = []
+    for it in tqdm(range(init_points + iterations), desc="tune", unit="iter", disable=not progress, file=sys.stderr):
+        if it < init_points:
+            params = {k: float(rng.uniform(*b)) for k, b in bounds.items()}
+        else:
+            params = {k: float(v) for k, v in opt.suggest().items()}
+        c = with_overrides(cfg, {"guidance": params})
+        jobs = [Job(c, RunSpec(m, seed=it * 100 + k * 10 + i), {"motion": m})
+                for k, m in enumerate(TUNE_MOTIONS) for i in range(runs_per_motion)]
+        runs = run_jobs(jobs, [1.0], n_jobs, progress=False)
+        target = float(np.mean([run_reward(r, reward) for r in runs]))
+        opt.register(params=params, target=target)
+        history.append({"iteration": it, **params, "reward": target,
+                        "success_1m": float(np.mean([r["success"]["1.0"] for r in runs]))})
+    best = max(history, key=lambda h: h["reward"])
+    md = ("| reward | k_pn ours (paper) | gamma_bar deg ours (paper) | mean reward | success 1 m |\n"
+          f"|---|---|---|---|---|\n| R_{reward} | {best['k_pn']:.2f} ({PAPER_TUNED[reward]['k_pn']:.2f}) | {best['gamma_bar']:.2f} "
+          f"({PAPER_TUNED[reward]['gamma_bar']:.2f}) | {best['reward']:.2f} | {best['success_1m']:.2f} |")
+    return {"suite": "tune", "reward": reward, "seed": seed, "best": best, "history": history, "markdown": md,
+            "paper": PAPER_TUNED[reward], "config": config_as_dict(cfg)}
+
+
 # -- plots -------------------------------------------------------------------------------------------
 
 
@@ -397,7 +449,8 @@ def register(subparsers: Any) -> None:
         "eval", help="run an evaluation suite of the paper on the in-process simulator",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("suite", choices=SUITES, help="which study to run")
+    p.add_argument("suite", choices=(*SUITES, "tune"),
+                   help="which study to run (tune: Bayesian optimisation of k_pn and gamma_bar, paper IV-D)")
     p.add_argument("--runs", type=int, default=None, metavar="N",
                    help="total runs (quick mode: e.g. --runs 10); default: the suite's full size")
     p.add_argument("--seed", type=int, default=0, help="suite seed; every run's seed derives from it")
@@ -407,6 +460,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", type=Path, default=None, metavar="PATH",
                    help="JSON result file (default DIR/results.json)")
     p.add_argument("--no-plots", action="store_true", help="skip the plots")
+    p.add_argument("--iterations", type=int, default=25, help="tune: BO iterations after the random start (25)")
+    p.add_argument("--init-points", type=int, default=5, help="tune: random points first (5)")
+    p.add_argument("--reward", choices=tuple(REWARDS), default="dt",
+                   help="tune: dt = distance + time (c_t 10, c_d 3), d = distance only (c_d 5, c 3)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_eval)
@@ -422,6 +479,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     out_dir = args.out if args.out is not None else Path("eval_out") / args.suite
     out_dir.mkdir(parents=True, exist_ok=True)
+    if args.suite == "tune":
+        return _cmd_tune(args, cfg, out_dir)
     res = run_suite(args.suite, cfg, runs=args.runs, seed=args.seed, n_jobs=min(args.jobs, os.cpu_count() or 1),
                     progress=not args.no_progress)
     json_path = args.json if args.json is not None else out_dir / "results.json"
@@ -439,6 +498,24 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         if args.suite == "latency":
             plot_latency(res, out_dir / "latency.png")
     print(f"wrote {json_path}, {out_dir / 'table.md'}" + ("" if args.no_plots else f", plots in {out_dir}"))
+    return 0
+
+
+def _cmd_tune(args: argparse.Namespace, cfg: Config, out_dir: Path) -> int:
+    if args.iterations < 0 or args.init_points < 1:
+        print("companion eval tune: --iterations must be >= 0 and --init-points >= 1", file=sys.stderr)
+        return 2
+    per = max(1, (args.runs or 2 * len(TUNE_MOTIONS)) // len(TUNE_MOTIONS))
+    res = tune(cfg, iterations=args.iterations, init_points=args.init_points, reward=args.reward,
+               runs_per_motion=per, seed=args.seed, n_jobs=args.jobs, progress=not args.no_progress)
+    json_path = args.json if args.json is not None else out_dir / "results.json"
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(res, indent=1, default=_json_default))
+    md = f"## tune (reward R_{args.reward})\n\n{res['markdown']}\n"
+    (out_dir / "table.md").write_text(md)
+    print(md)
+    best = res["best"]
+    print(f"best: --set guidance.k_pn={best['k_pn']:.3f} --set guidance.gamma_bar={best['gamma_bar']:.3f}")
     return 0
 
 
