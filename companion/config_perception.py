@@ -20,7 +20,9 @@ class PerceptionConfig(Section):
     input_size: int = Field(0, ge=0, le=4096, description="px, square model input; 0 = from the model")
     confidence: Number = Field(0.35, gt=0.0, lt=1.0)
     nms_iou: Number = Field(0.5, gt=0.0, lt=1.0)
-    backend: Literal["cv2", "onnxruntime"] = Field("cv2", description="onnxruntime is faster if installed")
+    backend: Literal["auto", "cv2", "onnxruntime"] = Field(
+        "auto", description="auto = onnxruntime when installed (about 2x faster here), else cv2.dnn"
+    )
     threads: int = Field(1, ge=0, le=64, description="inference threads; 0 = library default")
 
     # Tracker and policy (perception/tracker.py, perception/pipeline.py)

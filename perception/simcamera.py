@@ -31,9 +31,12 @@ _F_FRD_FLU = np.diag([1.0, -1.0, -1.0])  # body FRD <-> FLU (companion.frames.F_
 class Panorama:
     """An equirectangular background (azimuth x elevation) sampled per pixel by viewing direction."""
 
-    def __init__(self, model: CameraModel, rng: np.random.Generator, style: Style, width: int = 1440) -> None:
+    def __init__(self, model: CameraModel, rng: np.random.Generator, style: Style, width: int = 2880) -> None:
         self.model = model
-        self.env = make_background(width, width // 2, rng, style)
+        # ~8 px/deg like the camera; clutter scaled to the panorama's area (~13 frames of 640x480).
+        k = max(1, round(width * width / 2 / (640 * 480)))
+        self.env = make_background(width, width // 2, rng, replace(style, clutter=(style.clutter[0] * k,
+                                                                                   style.clutter[1] * k)))
         # Pixel rays (camera frame) on a coarse grid; the direction maps are upsampled per frame.
         self._step = 4
         w, h = model.width, model.height
@@ -90,6 +93,7 @@ class RenderedCamera:
         self.panorama = Panorama(model, self.rng, style)
         self._R_flu_cam = _F_FRD_FLU @ model.R_body_cam
         self.keep_frames = keep_frames
+        self.drop_prob = 0.0
         self.last_frame: np.ndarray | None = None
         self.last_truth: BoundingBox | None = None
 
@@ -100,6 +104,15 @@ class RenderedCamera:
 
         return cls(CameraModel.from_config(cfg.camera), Pipeline.from_config(cfg), np.random.default_rng(seed),
                    HELDOUT_STYLE if heldout_style else TRAIN_STYLE, **kw)
+
+    @classmethod
+    def for_run(cls, cfg, rng: np.random.Generator, drop_prob: float = 0.0, **kw) -> RenderedCamera:
+        """One simulated run's camera: fresh pipeline, appearance drawn from ``rng`` (the run's camera stream)."""
+        from perception.pipeline import Pipeline
+
+        cam = cls(CameraModel.from_config(cfg.camera), Pipeline.from_config(cfg), rng, **kw)
+        cam.drop_prob = float(drop_prob)
+        return cam
 
     def reset(self) -> None:
         self.pipeline.reset()
@@ -120,8 +133,30 @@ class RenderedCamera:
         self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray, centre: np.ndarray, normal: np.ndarray,
         radius: float,
     ) -> BoundingBox | None:
+        if self.drop_prob > 0.0 and self.rng.random() < self.drop_prob:
+            return None  # a dropped frame never reaches the pipeline
         frame, truth = self.render(p_enu, R_enu_flu, centre, normal, radius, t)
         self.last_truth = truth
         if self.keep_frames:
             self.last_frame = frame
         return self.pipeline.process(frame, t)
+
+
+def geometric_camera_substitute(cfg, **kw):
+    """A callable with GeometricCamera's constructor signature that builds a RenderedCamera.
+
+    ``companion.sim.runner.run_once`` builds ``GeometricCamera(model, pixel_noise, drop_prob, min_box, rng,
+    clip)``; this builds the rendered camera from the same arguments (pixel noise and clipping come from
+    the real detector instead), so the runner can swap cameras with one line.
+    """
+
+    def make(model: CameraModel, pixel_noise: float = 0.0, drop_prob: float = 0.0, min_box: float = 2.0,
+             rng: np.random.Generator | None = None, clip: bool = True) -> RenderedCamera:
+        from perception.pipeline import Pipeline
+
+        cam = RenderedCamera(model, Pipeline.from_config(cfg), rng if rng is not None else np.random.default_rng(0),
+                             **kw)
+        cam.drop_prob = float(drop_prob)
+        return cam
+
+    return make

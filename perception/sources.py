@@ -121,6 +121,13 @@ class FrameSource:
         self.close()
 
 
+def _has_gstreamer() -> bool:
+    for line in cv2.getBuildInformation().splitlines():
+        if line.strip().startswith("GStreamer:"):
+            return "YES" in line
+    return False
+
+
 def _capture(spec: str | int, api: int) -> cv2.VideoCapture:
     cap = cv2.VideoCapture(spec, api)
     if not cap.isOpened():
@@ -157,6 +164,11 @@ def open_source(spec: str | int, realtime: bool = True, frame_fn: FrameFn | None
         cap = _capture(spec, cv2.CAP_FFMPEG)
         name, pace, drop = spec, False, True
     elif isinstance(spec, str) and "!" in spec:
+        if not _has_gstreamer():
+            raise SourceError(
+                f"camera source {spec[:40]!r}...: this OpenCV build has no GStreamer support "
+                "(the PyPI wheels do not; use a system OpenCV built with GStreamer)"
+            )
         cap = _capture(spec, cv2.CAP_GSTREAMER)
         name, pace, drop = "gstreamer", False, True
     else:

@@ -88,6 +88,13 @@ def test_bad_sources_fail_with_one_line(tmp_path: Path) -> None:
     assert "\n" not in str(ei.value)
     with pytest.raises(SourceError, match="needs a frame function"):
         open_source("synthetic")
+    with pytest.raises(SourceError, match=r"camera source 97: cannot open"):
+        open_source(97)  # no such V4L2 device
+    from perception.sources import _has_gstreamer
+
+    if not _has_gstreamer():
+        with pytest.raises(SourceError, match="no GStreamer support"):
+            open_source("videotestsrc ! videoconvert ! appsink")
     junk = tmp_path / "junk.mp4"
     junk.write_bytes(b"not a video" * 10)
     with pytest.raises(SourceError, match="cannot open"):

@@ -1,0 +1,314 @@
+"""``companion replay VIDEO [--log FLIGHT_LOG] [--out DIR]``: perception + LOS + controller over a recorded video.
+
+What the app would have done on each frame: detector + tracker (perception.pipeline) -> box ->
+LOS (perception.los, attitude at the frame time) -> PNController -> commanded attitude and thrust.
+Writes ``DIR/annotated.mp4`` (box, raw detections, LOS, commanded attitude and thrust),
+``DIR/replay.csv`` (one row per frame) and ``DIR/replay.png`` (plots), with a progress bar.
+
+Attitude: with ``--log``, from a flight log, interpolated (slerp) at each frame's time:
+  * a flight folder (companion.flightlog): ``telemetry.csv`` (t, qw, qx, qy, qz, ...); frame k's
+    time is the ``t_frame`` of ``detections.csv``'s row with ``frame == k`` when recorded, else
+    ``--t0 + k / fps``;
+  * a CSV file with a header containing t, qw, qx, qy, qz (scalar-first, body FRD -> world NED);
+  * a JSON-lines file, one object per line with the same keys.
+Without ``--log`` the attitude is level, heading north (q = 1, 0, 0, 0), frame k at ``k / fps``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config, add_config_arguments, config_from_args
+
+CSV_COLUMNS = (
+    "frame", "t", "box", "cx", "cy", "w", "h", "confidence", "los_raw_n", "los_raw_e", "los_raw_d",
+    "los_n", "los_e", "los_d", "mode", "rejected", "roll_deg", "pitch_deg", "yaw_deg", "thrust",
+    "qw", "qx", "qy", "qz",
+)
+
+
+class ReplayError(ValueError):
+    """Bad replay input, as one line."""
+
+
+@dataclass
+class AttitudeTrack:
+    """Attitude samples (t, q_wxyz NED/FRD), interpolated by slerp; held constant outside the samples."""
+
+    t: np.ndarray
+    q_wxyz: np.ndarray
+    frame_times: dict[int, float] | None = None
+
+    def at(self, t: float) -> np.ndarray:
+        from scipy.spatial.transform import Rotation, Slerp
+
+        if len(self.t) == 1:
+            return self.q_wxyz[0].copy()
+        tc = float(np.clip(t, self.t[0], self.t[-1]))
+        rot = Rotation.from_quat(self.q_wxyz[:, [1, 2, 3, 0]])
+        x, y, z, w = Slerp(self.t, rot)([tc]).as_quat()[0]
+        return np.array([w, x, y, z])
+
+
+def level_attitude() -> AttitudeTrack:
+    return AttitudeTrack(np.array([0.0]), np.array([[1.0, 0.0, 0.0, 0.0]]))
+
+
+def _rows_to_track(rows: list[dict[str, Any]], where: str) -> AttitudeTrack:
+    need = ("t", "qw", "qx", "qy", "qz")
+    good = []
+    for i, r in enumerate(rows):
+        missing = [k for k in need if k not in r]
+        if missing:
+            raise ReplayError(f"{where}: row {i + 1}: missing {', '.join(missing)} (need t, qw, qx, qy, qz)")
+        try:
+            vals = [float(r[k]) for k in need]
+        except (TypeError, ValueError):
+            continue  # a blank or cut-off line (a log killed mid-write): skip it
+        if all(math.isfinite(v) for v in vals) and np.linalg.norm(vals[1:]) > 0.5:
+            good.append(vals)
+    if not good:
+        raise ReplayError(f"{where}: no attitude samples (t, qw, qx, qy, qz)")
+    a = np.array(sorted(good, key=lambda v: v[0]))
+    t, keep = np.unique(a[:, 0], return_index=True)
+    q = a[keep, 1:]
+    return AttitudeTrack(t, q / np.linalg.norm(q, axis=1, keepdims=True))
+
+
+def _read_csv(path: Path) -> list[dict[str, Any]]:
+    with open(path, newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+def load_attitude(path: str | Path) -> AttitudeTrack:
+    """Attitude from a flight folder, a CSV or a JSON-lines file (see the module doc)."""
+    p = Path(path)
+    if p.is_dir():
+        tel = p / "telemetry.csv"
+        if not tel.is_file():
+            raise ReplayError(f"{p}: flight folder without telemetry.csv")
+        track = _rows_to_track(_read_csv(tel), str(tel))
+        det = p / "detections.csv"
+        if det.is_file():
+            ft = {}
+            for r in _read_csv(det):
+                try:
+                    ft[int(float(r["frame"]))] = float(r["t_frame"])
+                except (KeyError, TypeError, ValueError):
+                    continue
+            track.frame_times = ft or None
+        return track
+    if not p.is_file():
+        raise ReplayError(f"{p}: flight log not found")
+    if p.suffix in (".jsonl", ".json", ".ndjson"):
+        rows = []
+        lines = p.read_text(encoding="utf-8").splitlines()
+        for i, line in enumerate(lines):
+            if not line.strip():
+                continue
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                if i == len(lines) - 1:
+                    continue  # a cut-off last line (log killed mid-write)
+                raise ReplayError(f"{p}: line {i + 1}: not JSON") from None
+        return _rows_to_track(rows, str(p))
+    return _rows_to_track(_read_csv(p), str(p))
+
+
+def _project_ned(model: Any, los_ned: np.ndarray, R_ned_frd: np.ndarray) -> tuple[float, float] | None:
+    return model.project_body(R_ned_frd.T @ los_ned)
+
+
+def replay(
+    video: str | Path, cfg: Config, log: str | Path | None = None, out: str | Path | None = None,
+    t0: float = 0.0, progress: bool = True, max_frames: int = 0,
+) -> dict[str, Any]:
+    """Run the replay; returns a summary (frames, boxes, output paths, pipeline stats)."""
+    import cv2
+    from tqdm import tqdm
+
+    from companion.controller import PNController
+    from companion.frames import R_from_quat_wxyz
+    from perception.los import CameraModel, los_world
+    from perception.pipeline import Pipeline
+
+    video = Path(video)
+    if not video.is_file():
+        raise ReplayError(f"{video}: video file not found")
+    cap = cv2.VideoCapture(str(video))
+    if not cap.isOpened():
+        raise ReplayError(f"{video}: cannot open as a video")
+    fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    fps = fps if 0 < fps < 1000 else float(cfg.camera.rate)
+    n_total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    if (w, h) != (cfg.camera.width, cfg.camera.height):
+        cap.release()
+        raise ReplayError(
+            f"{video}: frames are {w}x{h} but camera.width x camera.height is "
+            f"{cfg.camera.width}x{cfg.camera.height} (the intrinsics must match the video)"
+        )
+    track = load_attitude(log) if log is not None else level_attitude()
+    out_dir = Path(out) if out is not None else video.with_name(video.stem + "_replay")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model = CameraModel.from_config(cfg.camera)
+    pipe = Pipeline.from_config(cfg)
+    ctrl = PNController.from_config(cfg)
+    writer = cv2.VideoWriter(str(out_dir / "annotated.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    if not writer.isOpened():
+        cap.release()
+        raise ReplayError(f"{out_dir / 'annotated.mp4'}: cannot write video")
+    rows: list[dict[str, Any]] = []
+    bar = tqdm(total=n_total or None, unit="frame", desc=f"replay {video.name}", disable=not progress)
+    k = 0
+    try:
+        while True:
+            ok, frame = cap.read()
+            if not ok or (max_frames and k >= max_frames):
+                break
+            t = track.frame_times.get(k, t0 + k / fps) if track.frame_times else t0 + k / fps
+            q = track.at(t)
+            R = R_from_quat_wxyz(q)
+            box = pipe.process(frame, t)
+            co = ctrl.step(t, box, q)
+            raw = los_world(model, box.cx, box.cy, R) if box is not None else None
+            sp = co.setpoint
+            row = {
+                "frame": k, "t": t, "box": int(box is not None),
+                "cx": box.cx if box else "", "cy": box.cy if box else "", "w": box.w if box else "",
+                "h": box.h if box else "", "confidence": box.confidence if box else "",
+                "los_raw_n": raw[0] if raw is not None else "", "los_raw_e": raw[1] if raw is not None else "",
+                "los_raw_d": raw[2] if raw is not None else "",
+                "los_n": co.los_ned[0] if co.los_ned is not None else "",
+                "los_e": co.los_ned[1] if co.los_ned is not None else "",
+                "los_d": co.los_ned[2] if co.los_ned is not None else "",
+                "mode": co.mode, "rejected": co.rejected or "",
+                "roll_deg": sp.roll_deg, "pitch_deg": sp.pitch_deg, "yaw_deg": sp.yaw_deg, "thrust": sp.thrust,
+                "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
+            }
+            rows.append(row)
+            writer.write(_annotate(frame, pipe.last_detections, box, co, model, R))
+            k += 1
+            bar.update(1)
+    finally:
+        bar.close()
+        cap.release()
+        writer.release()
+    if not rows:
+        raise ReplayError(f"{video}: no frames could be read")
+    with open(out_dir / "replay.csv", "w", newline="", encoding="utf-8") as f:
+        wr = csv.DictWriter(f, fieldnames=CSV_COLUMNS, lineterminator="\n")
+        wr.writeheader()
+        wr.writerows(rows)
+    _plot(rows, out_dir / "replay.png", video.name)
+    summary = {
+        "video": str(video), "frames": len(rows), "fps": fps, "boxes": sum(r["box"] for r in rows),
+        "attitude": str(log) if log is not None else "level", "out": str(out_dir),
+        "annotated": str(out_dir / "annotated.mp4"), "csv": str(out_dir / "replay.csv"),
+        "plot": str(out_dir / "replay.png"), "pipeline": pipe.stats.summary(),
+    }
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _annotate(frame: np.ndarray, dets: list, box: Any, co: Any, model: Any, R: np.ndarray) -> np.ndarray:
+    import cv2
+
+    img = frame.copy()
+    for d in dets:  # raw detections: thin grey
+        x0, y0, x1, y1 = (round(v) for v in d.xyxy)
+        cv2.rectangle(img, (x0, y0), (x1, y1), (160, 160, 160), 1)
+    if box is not None:  # the tracked, smoothed box that feeds the LOS
+        x0, y0, x1, y1 = (round(v) for v in box.xyxy)
+        cv2.rectangle(img, (x0, y0), (x1, y1), (0, 255, 0), 2)
+        cv2.putText(img, f"{box.confidence:.2f}", (x0, max(12, y0 - 4)), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                    (0, 255, 0), 1, cv2.LINE_AA)
+    if co.los_ned is not None:  # filtered LOS, projected back into the image
+        uv = _project_ned(model, np.asarray(co.los_ned), R)
+        if uv is not None and abs(uv[0]) < 1e5 and abs(uv[1]) < 1e5:
+            u, v = round(uv[0]), round(uv[1])
+            cv2.drawMarker(img, (u, v), (0, 0, 255), cv2.MARKER_CROSS, 18, 2)
+    sp = co.setpoint
+    lines = [
+        f"t {co.t:7.3f}s  mode {co.mode}" + (f"  ({co.rejected})" if co.rejected else ""),
+        f"roll {sp.roll_deg:+6.1f}  pitch {sp.pitch_deg:+6.1f}  yaw {sp.yaw_deg:+7.1f} deg",
+        f"thrust {sp.thrust:.3f}  |lambda_dot| {co.lambda_dot:.3f} rad/s",
+    ]
+    panel = img[0:8 + 18 * len(lines), 0:420]
+    panel[:] = (panel * 0.35).astype(np.uint8)  # darkened panel: text readable on any background
+    for i, s in enumerate(lines):
+        cv2.putText(img, s, (8, 18 + 18 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    hh = img.shape[0]
+    bar = round(sp.thrust * (hh - 40))  # thrust bar on the right edge
+    cv2.rectangle(img, (img.shape[1] - 18, hh - 20 - bar), (img.shape[1] - 8, hh - 20), (0, 200, 255), -1)
+    return img
+
+
+def _plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def col(k: str) -> np.ndarray:
+        return np.array([float(r[k]) if r[k] != "" else np.nan for r in rows])
+
+    t = col("t")
+    fig, ax = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
+    ax[0].plot(t, col("cx"), label="cx")
+    ax[0].plot(t, col("cy"), label="cy")
+    ax[0].set_ylabel("box centre [px]")
+    ax[0].legend(loc="upper right")
+    ln, le, ld = col("los_n"), col("los_e"), col("los_d")
+    ax[1].plot(t, np.degrees(np.arctan2(le, ln)), label="LOS azimuth")
+    ax[1].plot(t, np.degrees(np.arcsin(np.clip(-ld, -1, 1))), label="LOS elevation")
+    ax[1].set_ylabel("filtered LOS [deg]")
+    ax[1].legend(loc="upper right")
+    for k in ("roll_deg", "pitch_deg"):
+        ax[2].plot(t, col(k), label=k)
+    ax[2].set_ylabel("commanded [deg]")
+    ax[2].legend(loc="upper right")
+    ax[3].plot(t, col("thrust"), label="thrust")
+    ax[3].set_ylabel("thrust [0..1]")
+    ax[3].set_xlabel("t [s]")
+    fig.suptitle(f"replay: {title}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    import sys
+
+    cfg = config_from_args(args)
+    try:
+        s = replay(args.video, cfg, args.log, args.out, args.t0, progress=not args.quiet)
+    except ValueError as e:  # ReplayError, DetectorError, TrackerError: already one line
+        print(f"companion replay: {e}", file=sys.stderr)
+        return 2
+    print(f"replay: {s['frames']} frames, box in {s['boxes']}; wrote {s['annotated']}, {s['csv']}, {s['plot']}")
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "replay", help="run detector + tracker + LOS + controller over a recorded video",
+        description=__doc__.split("\n\n")[0] if __doc__ else None,
+    )
+    p.add_argument("video", help="recorded video file (frame size must match camera.width/height)")
+    p.add_argument("--log", default=None, metavar="FLIGHT_LOG",
+                   help="flight folder, or CSV / JSON-lines of t, qw, qx, qy, qz (NED/FRD); default: level")
+    p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: VIDEO_replay/ next to it)")
+    p.add_argument("--t0", type=float, default=0.0, help="flight time of the first frame, s (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_arguments(p)
+    p.set_defaults(func=_cmd)
