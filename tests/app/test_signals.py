@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -18,14 +20,42 @@ from companion.flightlog import read_flight
 pytestmark = pytest.mark.timeout(120)
 
 
-def _start_fly(tmp_path: Path, url: str) -> tuple[subprocess.Popen, Path]:
+def _start_fly(tmp_path: Path, url: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen, Path]:
     logdir = tmp_path / "flights"
     cmd = [sys.executable, "-m", "companion.cli", "fly", "--url", url, "--log-dir", str(logdir), "--no-plot"]
     for o in BASE_OVERRIDES:
         cmd += ["--set", o]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            cwd=Path(__file__).resolve().parents[2])
+                            cwd=Path(__file__).resolve().parents[2], env={**os.environ, **(env or {})})
     return proc, logdir
+
+
+class NotifySocket:
+    """What systemd does for Type=notify: an AF_UNIX datagram socket; collects every message."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = str(path)
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(self.path)
+        self.sock.settimeout(0.2)
+        self.messages: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.messages.append(self.sock.recv(4096).decode())
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.sock.close()
 
 
 def _wait_engaged(proc: subprocess.Popen, logdir: Path, timeout: float = 40.0) -> Path:
@@ -48,7 +78,9 @@ def _reap(proc: subprocess.Popen) -> None:
 
 
 def test_sigterm_mid_flight_hands_over_to_hold(sim, tmp_path):
-    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
+    notify = NotifySocket(tmp_path / "notify.sock")
+    env = {"NOTIFY_SOCKET": notify.path, "WATCHDOG_USEC": "1000000"}
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk, env)
     try:
         folder = _wait_engaged(proc, logdir)
         time.sleep(0.7)
@@ -57,6 +89,7 @@ def test_sigterm_mid_flight_hands_over_to_hold(sim, tmp_path):
         err = proc.stderr.read()
     finally:
         _reap(proc)
+        notify.close()
     assert rc == Reason.SIGNAL.value, err
     f = read_flight(folder)
     assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_HOLD"]
@@ -65,6 +98,12 @@ def test_sigterm_mid_flight_hands_over_to_hold(sim, tmp_path):
     assert "SAFE_HOLD" in err and "SIGTERM" in err  # the safe state and its reason on stderr too
     assert sim.mode == "HOLD" and sim.armed
     assert not any(e.startswith("failsafe") for _, e in sim.events)  # an orderly hand-over, not a failsafe
+    # systemd notify protocol, as a Type=notify service with WatchdogSec would see it.
+    msgs = notify.messages
+    assert msgs[0].startswith("READY=1")
+    assert msgs.count("WATCHDOG=1") >= 5
+    assert any(m.startswith("STATUS=ENGAGE") for m in msgs)
+    assert msgs[-1].startswith("STOPPING=1") and "SAFE_HOLD" in msgs[-1]
 
 
 def test_sigkill_mid_flight_leaves_a_readable_log(sim, tmp_path):
