@@ -361,7 +361,8 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
                         "success_1m": float(np.mean([r["success"]["1.0"] for r in runs]))})
     best = max(history, key=lambda h: h["reward"])
     md = ("| reward | k_pn ours (paper) | gamma_bar deg ours (paper) | mean reward | success 1 m |\n"
-          f"|---|---|---|---|---|\n| R_{reward} | {best['k_pn']:.2f} ({PAPER_TUNED[reward]['k_pn']:.2f}) | {best['gamma_bar']:.2f} "
+          f"|---|---|---|---|---|\n| R_{reward} | {best['k_pn']:.2f} ({PAPER_TUNED[reward]['k_pn']:.2f}) | "
+          f"{best['gamma_bar']:.2f} "
           f"({PAPER_TUNED[reward]['gamma_bar']:.2f}) | {best['reward']:.2f} | {best['success_1m']:.2f} |")
     return {"suite": "tune", "reward": reward, "seed": seed, "best": best, "history": history, "markdown": md,
             "paper": PAPER_TUNED[reward], "config": config_as_dict(cfg)}

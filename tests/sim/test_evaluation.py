@@ -92,3 +92,20 @@ def test_bad_arguments_are_one_line_errors(capsys):
     assert main(["eval", "table1", "--runs", "1", "--set", "sim.camera.delay=5 parsecs"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sim.camera.delay" in err[0]
+
+
+def test_tune_quick_registers_every_evaluation():
+    from companion.evaluation import run_reward, tune
+
+    res = tune(Config(), iterations=1, init_points=2, reward="d", runs_per_motion=1, seed=0, n_jobs=2,
+               progress=False)
+    assert len(res["history"]) == 3
+    for h in res["history"]:
+        assert 0.3 <= h["k_pn"] <= 3.0 and 5.0 <= h["gamma_bar"] <= 30.0
+    assert res["best"]["reward"] == max(h["reward"] for h in res["history"])
+    assert "(1.11)" in res["markdown"]
+    # eq:meth_bo_reward by hand: R_d = max(0, 3 - 5 d), R_dt = max(0, 10 / t - 3 d).
+    run = {"crossed": True, "t_gate_s": 2.5, "d_center_m": 0.2}
+    assert run_reward(run, "d") == pytest.approx(2.0) and run_reward(run, "dt") == pytest.approx(3.4)
+    assert run_reward({**run, "d_center_m": 1.0}, "d") == 0.0
+    assert run_reward({"crossed": False}, "dt") == 0.0
