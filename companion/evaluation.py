@@ -342,7 +342,7 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
         raise ValueError(f"tune: unknown reward {reward!r} (use one of: {', '.join(REWARDS)})")
     bounds = {"k_pn": (0.3, 3.0), "gamma_bar": (5.0, 30.0)}
     opt = BayesianOptimization(f=None, pbounds=bounds, random_state=seed, verbose=0, allow_duplicate_points=True,
-                               acquisition_function=acquisition.UpperConfidenceBound(kappa=2.576, random_state=seed))
+                               acquisition_function=acquisition.UpperConfidenceBound(kappa=2.576))
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4]))
     cfg = with_overrides(cfg, {"sim": {"seed": seed}})
     history = []
