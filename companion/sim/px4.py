@@ -57,9 +57,11 @@ from companion.frames import (
     R_from_quat_wxyz,
     R_ned_frd_from_enu_flu,
     enu_to_ned,
+    euler_ned_deg_from_R,
     flu_to_frd,
 )
 from companion.sim.dynamics import G, QuadParams, Quadrotor, QuadState
+from companion.sim.sensors import Sensors, Wind
 
 # PX4 custom modes: custom_mode = (sub_mode << 24) | (main_mode << 16).
 _MODES: dict[str, tuple[int, int]] = {
@@ -125,10 +127,15 @@ class _PositionController:
 
     K_POS_XY, K_POS_Z = 0.95, 1.0  # 1/s (PX4 MPC_XY_P, MPC_Z_P)
     K_VEL_XY, K_VEL_Z = 1.8, 4.0  # 1/s (PX4 MPC_XY_VEL_P_ACC, MPC_Z_VEL_P_ACC)
+    K_I_XY, K_I_Z = 0.4, 2.0  # 1/s^2 (PX4 MPC_XY_VEL_I_ACC, MPC_Z_VEL_I_ACC): wind, hover-thrust error
+    I_MAX = 3.0  # m/s^2, anti-windup
+
+    def __init__(self) -> None:
+        self._i = np.zeros(3)
 
     def command(
         self, s: QuadState, p_ref: np.ndarray, yaw: float, hover_thrust: float, params: Mapping[str, float],
-        vz_override: float | None = None,
+        vz_override: float | None = None, dt: float = 0.0,
     ) -> tuple[np.ndarray, float]:
         v_xy_max = params["MPC_XY_VEL_MAX"]
         v_ref = np.empty(3)
@@ -141,9 +148,12 @@ class _PositionController:
         else:
             v_ref[2] = float(np.clip(self.K_POS_Z * (p_ref[2] - s.p[2]),
                                      -params["MPC_Z_VEL_MAX_DN"], params["MPC_Z_VEL_MAX_UP"]))
+        e = v_ref - s.v
+        if not s.on_ground:
+            self._i = np.clip(self._i + dt * e * (self.K_I_XY, self.K_I_XY, self.K_I_Z), -self.I_MAX, self.I_MAX)
         a = np.empty(3)
-        a[:2] = self.K_VEL_XY * (v_ref[:2] - s.v[:2])
-        a[2] = self.K_VEL_Z * (v_ref[2] - s.v[2]) + G
+        a[:2] = self.K_VEL_XY * e[:2] + self._i[:2]
+        a[2] = self.K_VEL_Z * e[2] + self._i[2] + G
         a[2] = max(a[2], 0.3 * G)  # never command a free fall
         # Tilt limit: scale the horizontal part so the thrust axis stays within MPC_TILTMAX_AIR.
         max_h = a[2] * math.tan(math.radians(params["MPC_TILTMAX_AIR"]))
@@ -187,16 +197,10 @@ class SimPX4:
         self._dt = 1.0 / float(config.sim.rate)
         self._rng = np.random.default_rng(int(config.sim.seed) + 4242)  # own stream: sim's other users
         sens = config.sim.sensors
-        self._noise = bool(noise)
-        k = 1.0 if noise else 0.0
-        self._accel_sd = k * sens.accel_noise
-        self._gyro_sd = k * math.radians(sens.gyro_noise)
-        self._att_sd = k * math.radians(sens.attitude_noise)
-        self._baro_sd = k * sens.baro_noise
-        self._accel_bias = k * self._rng.normal(0.0, sens.accel_bias, 3)
-        self._gyro_bias = k * self._rng.normal(0.0, math.radians(sens.gyro_bias), 3)
-        self._att_bias = Rotation.from_rotvec(k * self._rng.normal(0.0, math.radians(sens.attitude_bias), 3))
-        self._baro_bias = k * float(self._rng.normal(0.0, sens.baro_bias))
+        if not noise:  # perfect sensors: every noise and bias std zero
+            sens = sens.model_copy(update=dict.fromkeys(type(sens).model_fields, 0.0))
+        self._sensors = Sensors(sens, self._rng)
+        self._wind = Wind(config.sim.wind, self._rng)
 
         self._params: dict[str, tuple[float, int]] = dict(DEFAULT_PX4_PARAMS)
         self._params["MPC_THR_HOVER"] = (self.quad_params.hover_thrust, _REAL32)
@@ -250,7 +254,6 @@ class SimPX4:
         self._hold_yaw = self._yaw_of(s.q)
         self._takeoff_alt = 0.0
         self._pos_ctrl = _PositionController()
-        self._attitude_noise = Rotation.identity()
         self._baro_alt = HOME_ALT
         self._dropped = False
         self._silenced = False
@@ -481,7 +484,7 @@ class SimPX4:
     # ---------------------------------------------------------------------------- physics + FSM
     def _physics_step(self) -> None:
         q_cmd, thrust = self._control()
-        self._quad.step(self._dt, q_cmd, thrust)
+        self._quad.step(self._dt, q_cmd, thrust, self._wind.step(self._dt))
         self._t += self._dt
         self._supervise()
 
@@ -498,13 +501,13 @@ class SimPX4:
         if mode == "TAKEOFF":
             ref = np.array([self._hold_p[0], self._hold_p[1], self._takeoff_alt])
             vz = min(self._pos_ctrl.K_POS_Z * (self._takeoff_alt - s.p[2]), self._p("MPC_TKO_SPEED"))
-            return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(), vz)
+            return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(), vz, self._dt)
         if mode == "LAND":
             ref = np.array([self._hold_p[0], self._hold_p[1], 0.0])
             slow = s.p[2] <= self._p("MPC_LAND_ALT2")
             vz = -self._p("MPC_LAND_SPEED") if slow else -self._p("MPC_Z_VEL_MAX_DN")
-            return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(), vz)
-        return self._pos_ctrl.command(s, self._hold_p, self._hold_yaw, hover, self._param_values())
+            return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(), vz, self._dt)
+        return self._pos_ctrl.command(s, self._hold_p, self._hold_yaw, hover, self._param_values(), None, self._dt)
 
     def _param_values(self) -> dict[str, float]:
         return {k: v[0] for k, v in self._params.items()}
@@ -768,26 +771,19 @@ class SimPX4:
         R_true = Rotation.from_quat(s.q)
         fast = {mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ATTITUDE}
         if fast.intersection(due):
-            # The estimate: truth, a per-run bias and white noise (PX4's EKF is good, not perfect).
-            noise = Rotation.from_rotvec(self._rng.normal(0.0, self._att_sd, 3)) if self._att_sd else None
-            R_est = R_true * self._att_bias if noise is None else R_true * self._att_bias * noise
-            R_ned_frd = R_ned_frd_from_enu_flu(R_est.as_matrix())
-            x, y, z, w = Rotation.from_matrix(R_ned_frd).as_quat()
-            wq = [w, x, y, z] if w >= 0 else [-w, -x, -y, -z]
+            # PX4's attitude estimate: truth with a per-run bias and white noise (companion/sim/sensors.py).
+            wq = self._sensors.attitude_wxyz_ned_frd(s.q)
             rates = flu_to_frd(s.omega)
             if mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION in due:
                 self._send(self._mav.attitude_quaternion_encode(ms, *wq, *rates, [0.0, 0.0, 0.0, 0.0]))
             if mavlink.MAVLINK_MSG_ID_ATTITUDE in due:
-                yaw, pitch, roll = Rotation.from_matrix(R_ned_frd).as_euler("ZYX")
+                roll, pitch, yaw = (math.radians(a) for a in euler_ned_deg_from_R(R_from_quat_wxyz(wq)))
                 self._send(self._mav.attitude_encode(ms, roll, pitch, yaw, *rates))
         alt_amsl = HOME_ALT + float(s.p[2])
-        baro_alt = alt_amsl + self._baro_bias + (self._rng.normal(0.0, self._baro_sd) if self._baro_sd else 0.0)
+        baro_alt = HOME_ALT + self._sensors.baro_altitude(float(s.p[2]))
         if mavlink.MAVLINK_MSG_ID_HIGHRES_IMU in due:
-            acc = flu_to_frd(self._quad.specific_force_body()) + self._accel_bias
-            gyro = flu_to_frd(s.omega) + self._gyro_bias
-            if self._noise:
-                acc = acc + self._rng.normal(0.0, self._accel_sd, 3)
-                gyro = gyro + self._rng.normal(0.0, self._gyro_sd, 3)
+            imu = self._sensors.imu(self._quad.specific_force_body(), s.omega)
+            acc, gyro = flu_to_frd(imu.accel), flu_to_frd(imu.gyro)
             self._send(self._mav.highres_imu_encode(
                 int(t * 1e6), *acc, *gyro, 0.21, 0.0, 0.42, pressure_pa(baro_alt) / 100.0, 0.0,
                 baro_alt, 25.0, 0x1FFF, 0))

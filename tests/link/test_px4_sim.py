@@ -170,3 +170,38 @@ def test_process_entry_point_prints_port_obeys_stdin_and_sigterm() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=5)
+
+
+@pytest.mark.timeout(40)
+def test_takeoff_and_hold_against_wind() -> None:
+    """The sim's own HOLD (PX4's position controller stand-in) holds position in a steady 3 m/s wind."""
+    from companion.config import load_config
+
+    cfg = load_config([], ["sim.wind.mean=[3.0, -1.0, 0.0]", "sim.seed=3"])
+    with SimPX4(cfg, px4_params={"MPC_TKO_SPEED": 3.0, "MIS_TAKEOFF_ALT": 3.0}) as sim:
+        gcs = RawGcs(sim.port)
+        gcs.heartbeat()
+        gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+        assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == mavlink.MAV_RESULT_ACCEPTED
+        gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+        assert gcs.ack(mavlink.MAV_CMD_NAV_TAKEOFF) == mavlink.MAV_RESULT_ACCEPTED
+        assert sim.wait_event("mode:HOLD:takeoff_done", 15.0) is not None
+        t0 = sim.time
+        assert sim.wait_for(lambda: sim.time > t0 + 6.0, 15.0)
+        s = sim.truth()
+        assert s.p == pytest.approx([0.0, 0.0, 3.0], abs=0.4)
+        assert np.linalg.norm(s.v) < 0.3
+        # Holding still, thrust must cancel the drag of the wind: f = (lin + quad |w|) w pushes downwind, so
+        # the thrust axis leans upwind by a / g (QuadParams' documented drag law, computed here by hand).
+        from scipy.spatial.transform import Rotation
+
+        from companion.sim.dynamics import QuadParams
+
+        qp = QuadParams.from_config(cfg)
+        wind = np.array([3.0, -1.0, 0.0])
+        a_drag = (qp.drag_lin + qp.drag_quad * np.linalg.norm(wind)) * wind / qp.mass
+        thrust = np.array([-a_drag[0], -a_drag[1], 9.81])
+        up = Rotation.from_quat(s.q).apply([0.0, 0.0, 1.0])
+        assert up == pytest.approx(thrust / np.linalg.norm(thrust), abs=0.004)
+        assert up[0] < -0.005 and up[1] > 0.0
+        gcs.close()
