@@ -126,6 +126,8 @@ class Quadrotor:
     def __init__(self, params: QuadParams, state: QuadState | None = None):
         self.params = params
         self._coeffs: dict[float, tuple[int, float, float, float]] = {}  # per dt: substeps and gains
+        self._k_lin = params.drag_lin / params.mass  # mass-normalised drag coefficients
+        self._k_quad = params.drag_quad / params.mass
         self.state = state if state is not None else QuadState()
 
     @property
@@ -209,15 +211,19 @@ class Quadrotor:
         k = k_att if ew >= 0.0 else -k_att
         w = self._w
         # Exact discretisation of the first-order rate response, command clipped to the rate limit.
-        w[0] += (min(max(k * ex, -wmax), wmax) - w[0]) * a_w
-        w[1] += (min(max(k * ey, -wmax), wmax) - w[1]) * a_w
-        w[2] += (min(max(k * ez, -wmax), wmax) - w[2]) * a_w
+        cx_, cy_, cz_ = k * ex, k * ey, k * ez
+        cx_ = wmax if cx_ > wmax else (-wmax if cx_ < -wmax else cx_)
+        cy_ = wmax if cy_ > wmax else (-wmax if cy_ < -wmax else cy_)
+        cz_ = wmax if cz_ > wmax else (-wmax if cz_ < -wmax else cz_)
+        w[0] += (cx_ - w[0]) * a_w
+        w[1] += (cy_ - w[1]) * a_w
+        w[2] += (cz_ - w[2]) * a_w
         self._f += (f_cmd - self._f) * a_f  # thrust lag
         f = self._f
         # Translational dynamics: a = R (f e_z) - f_aero / m + g; R e_z is the third column of R(q).
         v = self._v
         vax, vay, vaz = v[0] - wind[0], v[1] - wind[1], v[2] - wind[2]
-        k_d = (p.drag_lin + p.drag_quad * math.sqrt(vax * vax + vay * vay + vaz * vaz)) / p.mass
+        k_d = self._k_lin + self._k_quad * math.sqrt(vax * vax + vay * vay + vaz * vaz)
         ax = 2.0 * f * (qx * qz + qy * qw) - k_d * vax
         ay = 2.0 * f * (qy * qz - qx * qw) - k_d * vay
         az = f * (1.0 - 2.0 * (qx * qx + qy * qy)) - k_d * vaz - G
