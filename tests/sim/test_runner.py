@@ -108,3 +108,15 @@ def test_bad_spec_is_one_clear_error():
 def test_bench_sim_reports_speed():
     out = bench_sim(2.0, CFG)
     assert out["sim_speed_x_realtime"] > 0 and out["sim_seconds"] >= 2.0 and out["integration_hz"] >= 200
+
+
+def test_delayed_box_comes_with_the_attitude_of_its_capture_time():
+    base = {"sim": {"camera": {"delay": 0.2}}}
+    at_capture = run_once(with_overrides(CFG, base), RunSpec("planar", 4))
+    at_arrival = run_once(with_overrides(CFG, {"sim": {"camera": {"delay": 0.2, "attitude_at_capture": False}}}),
+                          RunSpec("planar", 4))
+    assert at_capture.as_dict(RADII) != at_arrival.as_dict(RADII)
+    # Without delay capture and arrival coincide: the option changes nothing.
+    a = run_once(CFG, RunSpec("planar", 4))
+    b = run_once(with_overrides(CFG, {"sim": {"camera": {"attitude_at_capture": False}}}), RunSpec("planar", 4))
+    assert a.as_dict(RADII) == b.as_dict(RADII)
