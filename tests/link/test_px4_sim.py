@@ -175,9 +175,9 @@ def test_process_entry_point_prints_port_obeys_stdin_and_sigterm() -> None:
 @pytest.mark.timeout(40)
 def test_takeoff_and_hold_against_wind() -> None:
     """The sim's own HOLD (PX4's position controller stand-in) holds position in a steady 3 m/s wind."""
-    from companion.config import load_config
+    from companion.sim.config import SimConfig, WindConfig
 
-    cfg = load_config([], ["sim.wind.mean=[3.0, -1.0, 0.0]", "sim.seed=3"])
+    cfg = Config(sim=SimConfig(seed=3, wind=WindConfig(mean=[3.0, -1.0, 0.0])))
     with SimPX4(cfg, px4_params={"MPC_TKO_SPEED": 3.0, "MIS_TAKEOFF_ALT": 3.0}) as sim:
         gcs = RawGcs(sim.port)
         gcs.heartbeat()
