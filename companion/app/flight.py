@@ -25,10 +25,10 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from companion.app import link as linkmod
+from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.notify import Notifier
 from companion.app.safety import Abort, CloseDetector, SafetyLimits, mode_is_pilot
 from companion.app.states import Reason, State, StateMachine, Transition
-from companion.app.synthcam import CameraSource, Frame, Perception
 from companion.controller import ControlOutput, PNController
 from companion.flightlog import FlightLog
 from companion.frames import euler_ned_deg_from_R
@@ -405,6 +405,8 @@ class FlightApp:
             exc = getattr(linkmod, name, None)
             if isinstance(exc, type) and isinstance(e, exc):
                 return Abort(reason, text)
+        if isinstance(e, CameraFailed):
+            return Abort(Reason.CAMERA_FAILED, text)
         if isinstance(e, (TimeoutError, ConnectionError)) and self.sm.state is State.CONNECT:
             return Abort(Reason.CONNECT_FAILED, text)
         if isinstance(e, TimeoutError):

@@ -110,11 +110,10 @@ def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
         from perception.pipeline import Pipeline
 
         return cam, cam.perception(Pipeline.from_config(cfg)), True
-    from companion.app.synthcam import PipelinePerception
+    from companion.app.camera import DeviceCamera, PipelinePerception
     from perception.pipeline import Pipeline
-    from perception.sources import open_source
 
-    return open_source(cfg), PipelinePerception(Pipeline.from_config(cfg)), True
+    return DeviceCamera.open(cfg.perception.source), PipelinePerception(Pipeline.from_config(cfg)), True
 
 
 async def fly(

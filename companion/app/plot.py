@@ -52,18 +52,16 @@ def plot_flight(folder: str | Path, output: str | Path | None = None) -> Path:
         ax[0].plot(sp["t"], sp["pitch_deg"], "C1--", lw=0.8, label="pitch setpoint")
         ax[1].plot(sp["t"], sp["thrust"], "C3-", lw=0.9, label="thrust setpoint")
     ax[0].set_ylabel("deg")
-    ax[0].legend(loc="lower left", fontsize=7, ncol=4)
     ax[1].set_ylabel("thrust 0..1")
-    ax[1].legend(loc="lower left", fontsize=7)
     if los is not None and len(los):
         ax[2].plot(los["t"], los["lambda_dot"], "C2-", lw=0.9, label="LOS rate (rad/s)")
-        ax[2].legend(loc="upper left", fontsize=7)
+
     if det is not None and len(det):
         a2 = ax[2].twinx()
         ok = det["valid"] > 0
         a2.plot(det["t"][ok], np.maximum(det["w"][ok], det["h"][ok]), "k.", ms=2, label="box size (px)")
         a2.set_ylabel("box px")
-        a2.legend(loc="upper right", fontsize=7)
+
     ax[2].set_ylabel("rad/s")
     truth = f.tables.get("truth")
     if tel is not None and len(tel):
@@ -78,11 +76,14 @@ def plot_flight(folder: str | Path, output: str | Path | None = None) -> Path:
     if floor is not None:
         ax[3].axhline(floor, color="r", lw=0.6, ls=":", label="altitude floor")
     ax[3].set_ylabel("m, m/s")
-    ax[3].legend(loc="upper left", fontsize=7)
+
     if sp is not None and len(sp):
         ax[4].plot(sp["t"], sp["latency_ms"], "C6.", ms=2, label="frame -> setpoint latency")
-        ax[4].legend(loc="upper left", fontsize=7)
+
     ax[4].set_ylabel("ms")
+    for a in ax:
+        if a.get_legend_handles_labels()[0]:
+            a.legend(loc="upper left", fontsize=7, ncol=4)
     ax[4].set_xlabel("flight time, s")
     s = f.summary
     fig.suptitle(f"{folder.name}: {s.get('outcome', '?')} ({s.get('reason', '?')}) {s.get('detail', '')}"[:140],

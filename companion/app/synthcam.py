@@ -18,10 +18,11 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from companion.app.camera import Frame, GeometricPerception, Perception, PipelinePerception
 from companion.frames import F_FRD_FLU, R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
 from companion.sim.camera import GeometricCamera
 from companion.sim.gates import GateMotion, make_gate
@@ -33,51 +34,12 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
-class Frame:
-    """One camera frame. ``image`` for real/rendered frames; ``box`` is set only by the geometric camera."""
-
-    index: int
-    t: float  # capture time, s, on the app's monotonic clock
-    image: np.ndarray | None = None
-    box: BoundingBox | None = None
-
-
-class CameraSource(Protocol):
-    async def read(self) -> Frame: ...
-
-    def close(self) -> None: ...
-
-
-class Perception(Protocol):
-    def process(self, frame: Frame) -> BoundingBox | None: ...
-
-
-@dataclass(frozen=True)
 class VehiclePose:
     """Pose for sensor simulation: position NED (m) and attitude NED/FRD quaternion (wxyz)."""
 
     t: float
     p_ned: np.ndarray
     q_wxyz: np.ndarray
-
-
-class GeometricPerception:
-    """The geometric camera's frames already carry the box (the projection is the detector)."""
-
-    def process(self, frame: Frame) -> BoundingBox | None:
-        return frame.box
-
-
-class PipelinePerception:
-    """Real perception: detector + tracker + smoothing on the frame's image."""
-
-    def __init__(self, pipeline: Any) -> None:
-        self.pipeline = pipeline
-
-    def process(self, frame: Frame) -> BoundingBox | None:
-        if frame.image is None:
-            return None
-        return self.pipeline.process(frame.image, frame.t)
 
 
 class FaultInjector:

@@ -1,0 +1,88 @@
+"""Camera side of the data path: a frame source and the perception stage that turns a frame into a box.
+
+The flight loop only sees ``CameraSource.read() -> Frame`` and ``Perception.process(frame) -> box``,
+for a real camera (``DeviceCamera`` over perception/sources.py + the detector pipeline) and for the
+synthetic camera (companion/app/synthcam.py) alike.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from perception.types import BoundingBox
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera frame. ``image`` for real/rendered frames; ``box`` is set only by the geometric camera."""
+
+    index: int
+    t: float  # capture time, s, on the app's monotonic clock
+    image: np.ndarray | None = None
+    box: BoundingBox | None = None
+
+
+class CameraSource(Protocol):
+    async def read(self) -> Frame: ...
+
+    def close(self) -> None: ...
+
+
+class Perception(Protocol):
+    def process(self, frame: Frame) -> BoundingBox | None: ...
+
+
+class GeometricPerception:
+    """The geometric camera's frames already carry the box (the projection is the detector)."""
+
+    def process(self, frame: Frame) -> BoundingBox | None:
+        return frame.box
+
+
+class PipelinePerception:
+    """Real perception: detector + tracker + smoothing on the frame's image."""
+
+    def __init__(self, pipeline: Any) -> None:
+        self.pipeline = pipeline
+
+    def process(self, frame: Frame) -> BoundingBox | None:
+        if frame.image is None:
+            return None
+        return self.pipeline.process(frame.image, frame.t)
+
+
+class CameraFailed(RuntimeError):
+    """The camera ended or reported an error (one line: which source, what)."""
+
+
+class DeviceCamera:
+    """A real camera (V4L2, file, GStreamer, RTSP) through perception/sources.py: newest frame only."""
+
+    def __init__(self, source: Any) -> None:
+        self.source = source
+        self.index = 0
+
+    @classmethod
+    def open(cls, spec: str) -> DeviceCamera:
+        from perception.sources import open_source
+
+        return cls(open_source(spec, realtime=True))
+
+    async def read(self) -> Frame:
+        loop = asyncio.get_running_loop()
+        while True:
+            # A stalled camera keeps us here: the app's watchdog acts, this loop just keeps waiting.
+            got = await loop.run_in_executor(None, self.source.read, 0.5)
+            if got is not None:
+                t, image = got
+                self.index += 1
+                return Frame(self.index, t, image)
+            if self.source.ended:
+                raise CameraFailed(f"camera {self.source.name}: {self.source.error or 'stream ended'}")
+
+    def close(self) -> None:
+        self.source.close()
