@@ -61,6 +61,8 @@ class Trajectory:
     box: list[tuple[float, float, float, float] | None] = field(default_factory=list)
     demand_scale: list[float] = field(default_factory=list)
     lambda_dot: list[float] = field(default_factory=list)
+    accel: list[np.ndarray] = field(default_factory=list)  # simulated IMU specific force, FLU (logged only)
+    baro: list[float] = field(default_factory=list)  # simulated barometric altitude, m (logged only)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {"t": np.array(self.t), "p": np.array(self.p), "v": np.array(self.v), "gate": np.array(self.gate)}
@@ -202,6 +204,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.box.append(None if box is None else (box.cx, box.cy, box.w, box.h))
             traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
+            # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
+            traj.accel.append(sensors.imu(quad.specific_force_body(), s.omega).accel)
+            traj.baro.append(sensors.baro_altitude(float(s.p[2])))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
     outcome.top_speed = top_speed

@@ -120,3 +120,14 @@ def test_delayed_box_comes_with_the_attitude_of_its_capture_time():
     a = run_once(CFG, RunSpec("planar", 4))
     b = run_once(with_overrides(CFG, {"sim": {"camera": {"attitude_at_capture": False}}}), RunSpec("planar", 4))
     assert a.as_dict(RADII) == b.as_dict(RADII)
+
+
+def test_recorded_imu_and_baro_follow_the_truth():
+    cfg = with_overrides(CFG, {"sim": {"sensors": {"accel_noise": 0.0, "accel_bias": 0.0, "baro_noise": 0.0}}})
+    r = run_once(cfg, RunSpec("stationary", 0), record=True)
+    tr = r.trajectory
+    acc = np.array(tr.accel)
+    # Mid-flight the accelerometer reads thrust minus drag: mostly along body z, about g or more.
+    assert np.all(np.linalg.norm(acc[5:], axis=1) > 8.0) and np.all(acc[5:, 2] > 8.0)
+    offset = np.array(tr.baro) - np.array(tr.p)[:, 2]
+    assert np.allclose(offset, offset[0]) and abs(offset[0]) < 3.0  # a constant per-run baro bias
