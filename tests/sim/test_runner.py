@@ -127,7 +127,9 @@ def test_recorded_imu_and_baro_follow_the_truth():
     r = run_once(cfg, RunSpec("stationary", 0), record=True)
     tr = r.trajectory
     acc = np.array(tr.accel)
-    # Mid-flight the accelerometer reads thrust minus drag: mostly along body z, about g or more.
-    assert np.all(np.linalg.norm(acc[5:], axis=1) > 8.0) and np.all(acc[5:, 2] > 8.0)
+    # In flight the accelerometer reads thrust minus drag: along body z, g on average (altitude is held),
+    # and drag backwards (-x) at ~10 m/s: (0.05 * 10 + 0.011 * 100) / 2 = 0.8 m/s^2.
+    assert np.all(acc[:, 2] > 3.0) and 9.0 < acc[:, 2].mean() < 11.5
+    assert np.all(acc[:, 0] < -0.5)
     offset = np.array(tr.baro) - np.array(tr.p)[:, 2]
     assert np.allclose(offset, offset[0]) and abs(offset[0]) < 3.0  # a constant per-run baro bias
