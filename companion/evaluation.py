@@ -28,14 +28,14 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from companion.config import add_config_arguments, config_as_dict, config_from_args
-from companion.sim.runner import RunResult, RunSpec, run_once, with_overrides
+from companion.sim.runner import CAMERAS, RunResult, RunSpec, run_once, with_overrides
 from companion.sim.scoring import aggregate, rkey
 
 if TYPE_CHECKING:
@@ -291,9 +291,11 @@ def build_suite(name: str, cfg: Config, runs: int | None = None, seed: int = 0) 
 
 
 def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0, n_jobs: int = 2,
-              progress: bool = True) -> dict:
+              progress: bool = True, camera: str = "geometric") -> dict:
     """Run a suite; returns the JSON-able result (per-run, groups, total, markdown, paper)."""
     suite = build_suite(name, cfg, runs, seed)
+    if camera != "geometric":
+        suite.jobs = [Job(j.cfg, replace(j.spec, camera=camera), j.group) for j in suite.jobs]
     t0 = time.perf_counter()
     results = run_jobs(suite.jobs, suite.radii, n_jobs, progress, desc=name)
     wall = time.perf_counter() - t0
@@ -310,6 +312,7 @@ def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0,
         "wall_time_s": wall,
         "sim_time_s": sim_s,
         "jobs": n_jobs,
+        "camera": camera,
         "config": config_as_dict(cfg),
         "runs": results,
     }
@@ -461,6 +464,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", type=Path, default=None, metavar="PATH",
                    help="JSON result file (default DIR/results.json)")
     p.add_argument("--no-plots", action="store_true", help="skip the plots")
+    p.add_argument("--camera", choices=CAMERAS, default="geometric",
+                   help="geometric: projected box (paper V-A); rendered: frames through the real detector (slow)")
     p.add_argument("--iterations", type=int, default=25, help="tune: BO iterations after the random start (25)")
     p.add_argument("--init-points", type=int, default=5, help="tune: random points first (5)")
     p.add_argument("--reward", choices=tuple(REWARDS), default="dt",
@@ -482,8 +487,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     if args.suite == "tune":
         return _cmd_tune(args, cfg, out_dir)
-    res = run_suite(args.suite, cfg, runs=args.runs, seed=args.seed, n_jobs=min(args.jobs, os.cpu_count() or 1),
-                    progress=not args.no_progress)
+    try:
+        res = run_suite(args.suite, cfg, runs=args.runs, seed=args.seed, n_jobs=min(args.jobs, os.cpu_count() or 1),
+                        progress=not args.no_progress, camera=args.camera)
+    except ValueError as e:  # e.g. the rendered camera's detector model is missing
+        print(f"companion eval: {e}", file=sys.stderr)
+        return 2
     json_path = args.json if args.json is not None else out_dir / "results.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(res, indent=1, default=_json_default))

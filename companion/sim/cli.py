@@ -15,7 +15,7 @@ from typing import Any
 
 from companion.config import add_config_arguments, config_from_args
 from companion.sim.gates import MOTIONS
-from companion.sim.runner import CONTROLLERS, RunSpec, run_once
+from companion.sim.runner import CAMERAS, CONTROLLERS, RunSpec, run_once
 
 
 def add_in_process_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,6 +25,8 @@ def add_in_process_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="run seed (initial condition, noise)")
     p.add_argument("--controller", choices=CONTROLLERS, default="pn",
                    help="pn (ours), pn_true_vrel (true closing speed), baseline (Bhattacharya et al.)")
+    p.add_argument("--camera", choices=CAMERAS, default="geometric",
+                   help="geometric: projected box (paper V-A); rendered: drawn frames through the real detector")
     p.add_argument("--plot", type=Path, default=Path("sim_run.png"), metavar="PNG",
                    help="plot file (default sim_run.png)")
     p.add_argument("--no-plot", action="store_true")
@@ -42,7 +44,12 @@ def register(subparsers: Any) -> None:
 def cmd_in_process(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     radii = list(cfg.sim.scenario.gate_radii)
-    res = run_once(cfg, RunSpec(args.motion, args.seed, args.controller), record=not args.no_plot)
+    try:
+        res = run_once(cfg, RunSpec(args.motion, args.seed, args.controller, camera=args.camera),
+                       record=not args.no_plot)
+    except ValueError as e:  # e.g. the rendered camera's detector model is missing: one line, no traceback
+        print(f"companion sim: {e}", file=sys.stderr)
+        return 2
     d = res.as_dict(radii)
     o = res.outcome
     if o.crossed:

@@ -38,6 +38,8 @@ if TYPE_CHECKING:
 
 ControllerKind = Literal["pn", "pn_true_vrel", "baseline"]
 CONTROLLERS: tuple[ControllerKind, ...] = ("pn", "pn_true_vrel", "baseline")
+CameraKind = Literal["geometric", "rendered"]
+CAMERAS: tuple[CameraKind, ...] = ("geometric", "rendered")
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,9 @@ class RunSpec:
     seed: int
     controller: ControllerKind = "pn"
     label: str = ""  # free text for grouping in suites
+    # geometric: projected box (fast, the paper's V-A setup); rendered: drawn frames through the real
+    # detector/tracker (perception/simcamera.py), ~100x slower.
+    camera: CameraKind = "geometric"
 
 
 @dataclass
@@ -111,6 +116,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         raise ValueError(f"run: unknown gate motion {spec.motion!r} (use one of: {', '.join(MOTIONS)})")
     if spec.controller not in CONTROLLERS:
         raise ValueError(f"run: unknown controller {spec.controller!r} (use one of: {', '.join(CONTROLLERS)})")
+    if spec.camera not in CAMERAS:
+        raise ValueError(f"run: unknown camera {spec.camera!r} (use one of: {', '.join(CAMERAS)})")
     sim = cfg.sim
     # Independent streams, so e.g. turning pixel noise on does not change the initial condition.
     ss = np.random.SeedSequence([sim.seed, spec.seed])
@@ -121,8 +128,13 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     quad = Quadrotor(params, scn.state0)
     from perception.los import CameraModel
 
-    camera = GeometricCamera(CameraModel.from_config(cfg.camera), sim.camera.pixel_noise,
-                             sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box)
+    make_camera = GeometricCamera
+    if spec.camera == "rendered":
+        from perception.simcamera import geometric_camera_substitute
+
+        make_camera = geometric_camera_substitute(cfg)
+    camera = make_camera(CameraModel.from_config(cfg.camera), sim.camera.pixel_noise,
+                         sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box)
     sensors = Sensors(sim.sensors, rng_sens)
     wind = Wind(sim.wind, rng_wind)
     ctrl = _make_controller(cfg, spec.controller, params)

@@ -133,3 +133,19 @@ def test_recorded_imu_and_baro_follow_the_truth():
     assert np.all(acc[:, 0] < -0.5)
     offset = np.array(tr.baro) - np.array(tr.p)[:, 2]
     assert np.allclose(offset, offset[0]) and abs(offset[0]) < 3.0  # a constant per-run baro bias
+
+
+MODEL = __import__("pathlib").Path(__file__).resolve().parents[2] / "perception" / "models" / "gate_detector.onnx"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not MODEL.exists(), reason="the shipped detector model is not built yet")
+def test_rendered_camera_closes_the_loop_through_the_real_detector():
+    cfg = with_overrides(CFG, {"sim": {"scenario": {"timeout": 1.0}}})
+    r = run_once(cfg, RunSpec("stationary", 0, camera="rendered"))
+    assert r.frames_with_box > 0.5 * r.frames
+
+
+def test_unknown_camera_is_one_clear_error():
+    with pytest.raises(ValueError, match="unknown camera 'lidar'"):
+        run_once(CFG, RunSpec("planar", 0, camera="lidar"))
