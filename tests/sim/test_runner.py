@@ -149,3 +149,23 @@ def test_rendered_camera_closes_the_loop_through_the_real_detector():
 def test_unknown_camera_is_one_clear_error():
     with pytest.raises(ValueError, match="unknown camera 'lidar'"):
         run_once(CFG, RunSpec("planar", 0, camera="lidar"))
+
+
+def test_true_vrel_ablation_feeds_the_true_closing_speed(monkeypatch):
+    import companion.guidance as guidance
+
+    seen: list[float] = []
+    orig = guidance.pn_demand
+
+    def spy(lambda_dot, n, k_pn, v_rel_bar):
+        seen.append(v_rel_bar)
+        return orig(lambda_dot, n, k_pn, v_rel_bar)
+
+    monkeypatch.setattr(guidance, "pn_demand", spy)
+    run_once(CFG, RunSpec("stationary", 3))
+    assert set(seen) == {CFG.guidance.v_rel_bar}
+    seen.clear()
+    r = run_once(CFG, RunSpec("stationary", 3, controller="pn_true_vrel"), record=True)
+    # Closing speed to a stationary gate = speed along the LOS: starts at 10 cos(angle) m/s and grows.
+    assert seen[0] == pytest.approx(10.0 * math.cos(math.radians(r.angle)), abs=0.3)
+    assert max(seen) > seen[0] + 1.0
