@@ -50,7 +50,6 @@ from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
-from scipy.spatial.transform import Rotation
 
 from companion.frames import (
     R_enu_flu_from_ned_frd,
@@ -60,7 +59,7 @@ from companion.frames import (
     euler_ned_deg_from_R,
     flu_to_frd,
 )
-from companion.sim.dynamics import G, QuadParams, Quadrotor, QuadState
+from companion.sim.dynamics import G, QuadParams, Quadrotor, QuadState, matrix_to_quat, quat_to_matrix
 from companion.sim.sensors import Sensors, Wind
 
 # PX4 custom modes: custom_mode = (sub_mode << 24) | (main_mode << 16).
@@ -160,13 +159,18 @@ class _PositionController:
         h = float(np.linalg.norm(a[:2]))
         if h > max_h:
             a[:2] *= max_h / h
-        z_b = a / np.linalg.norm(a)
-        x_c = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        y_b = np.cross(z_b, x_c)
-        y_b /= np.linalg.norm(y_b)
-        x_b = np.cross(y_b, z_b)
-        q = Rotation.from_matrix(np.column_stack([x_b, y_b, z_b])).as_quat()
-        thrust = float(np.linalg.norm(a)) * hover_thrust / G
+        # Thrust axis along a, heading kept: body y = z_b x (cos yaw, sin yaw, 0), body x = y_b x z_b.
+        # Plain floats: this runs at the physics rate and numpy's cross/scipy cost ~0.4 ms per call here.
+        ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+        n = math.sqrt(ax * ax + ay * ay + az * az)
+        zx, zy, zz = ax / n, ay / n, az / n
+        cx, cy = math.cos(yaw), math.sin(yaw)
+        yx, yy, yz = -zz * cy, zz * cx, zx * cy - zy * cx
+        m = math.sqrt(yx * yx + yy * yy + yz * yz)
+        yx, yy, yz = yx / m, yy / m, yz / m
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+        q = matrix_to_quat(np.array([[xx, yx, zx], [xy, yy, zy], [xz, yz, zz]]))
+        thrust = n * hover_thrust / G
         return q, min(max(thrust, params["MPC_THR_MIN"]), 1.0)
 
 
@@ -214,7 +218,7 @@ class SimPX4:
         self._rates: dict[int, float] = {}  # msg id -> interval s (0 = off)
         self._default_rates = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat_dt,
-            mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: 0.2,
             mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 0.2,
             mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 1.0 / telemetry_hz,
             mavlink.MAVLINK_MSG_ID_ATTITUDE: 1.0 / telemetry_hz,
@@ -260,6 +264,9 @@ class SimPX4:
         self.deny_arming = False
         self.deny_offboard = False
         self.overruns = 0  # physics steps skipped because the thread fell behind real time
+        self._busy = 0.0  # s of CPU-bound work in the sim thread (for stats())
+        self._t0_mono = math.nan
+        self._sp_rx_mono = math.nan
 
     # ---------------------------------------------------------------------------------- lifecycle
     def start(self) -> SimPX4:
@@ -342,6 +349,22 @@ class SimPX4:
             q = None if self._sp_q_enu_flu is None else self._sp_q_enu_flu.copy()
             return self._sp_time, q, self._sp_thrust
 
+    def stats(self) -> dict[str, float]:
+        """Load of the sim thread: wall and sim time, busy fraction, skipped physics steps."""
+        with self._lock:
+            wall = time.monotonic() - self._t0_mono if math.isfinite(self._t0_mono) else 0.0
+            return {"wall_s": wall, "sim_s": self._t, "busy_fraction": self._busy / wall if wall > 0 else 0.0,
+                    "overruns": float(self.overruns), "physics_hz": 1.0 / self._dt}
+
+    def monotonic_of(self, t_sim: float) -> float:
+        """time.monotonic() at which the sim clock read ``t_sim`` (same host: for latency measurements)."""
+        return self._t0_mono + t_sim
+
+    def last_setpoint_rx_monotonic(self) -> float:
+        """time.monotonic() when the last attitude setpoint arrived (NaN before the first)."""
+        with self._lock:
+            return self._sp_rx_mono
+
     def wait_for(self, predicate: Callable[[], bool], timeout: float) -> bool:
         """Block until predicate() (evaluated under the sim's lock after each physics tick) or timeout."""
         deadline = time.monotonic() + timeout
@@ -403,7 +426,7 @@ class SimPX4:
 
     @staticmethod
     def _yaw_of(q_xyzw: np.ndarray) -> float:
-        R = Rotation.from_quat(q_xyzw).as_matrix()
+        R = quat_to_matrix(q_xyzw)
         return math.atan2(R[1, 0], R[0, 0])  # heading of body x in ENU
 
     def _p(self, name: str) -> float:
@@ -438,7 +461,7 @@ class SimPX4:
 
     # ------------------------------------------------------------------------------ thread loop
     def _run(self) -> None:
-        t0 = time.monotonic()
+        t0 = self._t0_mono = time.monotonic()
         steps = 0
         assert self._sock is not None
         sock = self._sock
@@ -448,19 +471,23 @@ class SimPX4:
             if due - steps > 50:  # fell far behind (machine busy): skip rather than spiral
                 self.overruns += due - steps - 1
                 steps = due - 1
+            busy0 = time.perf_counter()
             with self._lock:
                 while steps < due:
                     self._physics_step()
                     steps += 1
                 self._send_telemetry()
                 self._cond.notify_all()
+            busy1 = time.perf_counter()
             wait = (steps + 1) * self._dt - (time.monotonic() - t0)
             try:
                 ready, _, _ = select.select([sock], [], [], max(0.0, wait))
             except (OSError, ValueError):
                 break
+            busy2 = time.perf_counter()
             if ready:
                 self._receive_all(sock)
+            self._busy += (busy1 - busy0) + (time.perf_counter() - busy2)
 
     def _receive_all(self, sock: socket.socket) -> None:
         for _ in range(256):
@@ -514,7 +541,7 @@ class SimPX4:
 
     @staticmethod
     def _level_q(yaw: float) -> np.ndarray:
-        return Rotation.from_euler("z", yaw).as_quat()
+        return np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
 
     def _supervise(self) -> None:
         """PX4's commander: failsafes, takeoff completion, landing detection, auto-disarm."""
@@ -573,9 +600,10 @@ class SimPX4:
         if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 0.5 or not math.isfinite(m.thrust):
             return
         R_enu_flu = R_enu_flu_from_ned_frd(R_from_quat_wxyz(q))
-        self._sp_q_enu_flu = Rotation.from_matrix(R_enu_flu).as_quat()
+        self._sp_q_enu_flu = matrix_to_quat(R_enu_flu)
         self._sp_thrust = min(max(float(m.thrust), 0.0), 1.0)
         self._sp_time = self._t
+        self._sp_rx_mono = time.monotonic()
         self._sp_count += 1
 
     def _ack(self, command: int, result: int, sysid: int, compid: int) -> None:
@@ -768,7 +796,7 @@ class SimPX4:
             self._next_send[mid] = max(self._next_send.get(mid, 0.0) + self._rates[mid], t)
         s = self._quad.state
         ms = int(t * 1000)
-        R_true = Rotation.from_quat(s.q)
+        R_true = quat_to_matrix(s.q)
         fast = {mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ATTITUDE}
         if fast.intersection(due):
             # PX4's attitude estimate: truth with a per-run bias and white noise (companion/sim/sensors.py).
@@ -792,8 +820,7 @@ class SimPX4:
             self._send(self._mav.local_position_ned_encode(ms, *p_ned, *v_ned))
         if mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION in due:
             lat, lon, alt = self._latlon(s.p)
-            R_ned_frd = R_ned_frd_from_enu_flu(R_true.as_matrix())
-            x, y, z, w = Rotation.from_matrix(R_ned_frd).as_quat()
+            x, y, z, w = matrix_to_quat(R_ned_frd_from_enu_flu(R_true))
             a_ned = enu_to_ned(self._quad.acceleration_world())
             cm = [int(np.clip(round(c * 100), -32767, 32767)) for c in v_ned]
             mg = [int(np.clip(round(c / G * 1000), -32767, 32767)) for c in a_ned]
@@ -801,7 +828,7 @@ class SimPX4:
                 int(t * 1e6), [w, x, y, z], *flu_to_frd(s.omega), lat, lon, int(alt * 1000), *cm, 0, 0, *mg))
         if mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT in due:
             lat, lon, alt = self._latlon(s.p)
-            yaw_ned = math.degrees(math.atan2(*Rotation.from_quat(s.q).apply([1.0, 0.0, 0.0])[:2])) % 360.0
+            yaw_ned = math.degrees(math.atan2(R_true[0, 0], R_true[1, 0])) % 360.0  # heading from north
             cm = [int(np.clip(round(c * 100), -32767, 32767)) for c in v_ned]
             self._send(self._mav.global_position_int_encode(
                 ms, lat, lon, int(alt * 1000), int(s.p[2] * 1000), *cm, int(yaw_ned * 100) % 36000))
