@@ -54,7 +54,8 @@ TOPICS: dict[str, tuple[str, ...]] = {
         "t", "t_frame", "state", "ctrl_mode", "roll_deg", "pitch_deg", "yaw_deg", "thrust", "latency_ms",
     ),
     # Synthetic camera only: the virtual gate in view (centre, plane normal, radius), NED.
-    "gate": ("t", "gate_n", "gate_e", "gate_d", "normal_n", "normal_e", "normal_d", "radius", "visible"),
+    # One row per gate per frame; k = gate number (1 = nearest at the start), visible = the one in view.
+    "gate": ("t", "k", "gate_n", "gate_e", "gate_d", "normal_n", "normal_e", "normal_d", "radius", "visible"),
 }
 IMMEDIATE = frozenset({"states", "events"})  # rare and precious: straight to the OS
 
@@ -330,7 +331,13 @@ def gate_crossings(flight: Flight) -> list[Crossing]:
     gate, truth = flight.tables.get("gate"), flight.tables.get("truth")
     if gate is None or truth is None or len(gate) < 2 or len(truth) < 2:
         return []
-    g_ok = np.isfinite(gate["gate_n"])
+    out: list[Crossing] = []
+    for k in np.unique(gate["k"][np.isfinite(gate["k"])]):
+        out += _crossings_of(gate, truth, np.isfinite(gate["gate_n"]) & (gate["k"] == k))
+    return sorted(out, key=lambda c: c.t)
+
+
+def _crossings_of(gate: Table, truth: Table, g_ok: np.ndarray) -> list[Crossing]:
     gt = gate["t"][g_ok]
     if len(gt) < 2:
         return []

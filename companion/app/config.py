@@ -55,7 +55,7 @@ class SyntheticCameraConfig(Section):
     height_offset: Meters = Field(0.0, ge=-50.0, le=50.0, description="m above the vehicle")
     radius: Meters = Field(1.0, gt=0.05, le=20.0, description="visual gate radius, m")
     count: int = Field(1, ge=1, le=20, description="gates in a row")
-    fault: Literal["none", "stall", "nan_box", "los_jump", "lose_target"] = Field(
+    fault: Literal["none", "stall", "nan_box", "los_jump", "lose_target", "exception"] = Field(
         "none", description="test switch: camera/perception fault injected after fault_after"
     )
     fault_after: Seconds = Field(1.0, ge=0.0, le=600.0, description="s after the first frame")

@@ -141,6 +141,8 @@ class FlightApp:
                 await asyncio.wait_for(self._safe_end(fault), self.cfg.link.command_timeout * 3 + 5.0)
             except Exception as e:
                 await self._last_resort(fault, e)
+        if self._connected:
+            self._log_telemetry()  # the vehicle as we leave it (the monitor samples only every 50 ms)
         self.notifier.stopping(self._status_text())
         for m in monitors:
             m.cancel()
@@ -232,6 +234,8 @@ class FlightApp:
                                           State.HANDBACK)
                 return
             await self._frame(frame, box, valid, t_avail)
+            if st is not State.RECOVER and self.sm.state is State.RECOVER:
+                streak = 0  # the next gate's track counts from here, not the passed gate's
 
     async def _frame(self, frame: Frame, box: Any, valid: bool, t_avail: float) -> None:
         """One frame while we own the vehicle: controller, safety, pass detection, setpoint, log."""
@@ -252,13 +256,17 @@ class FlightApp:
             if est.close:
                 if self.cfg.app.on_close == "fly_through":
                     self._pass_start, self._pass_sp, self._gone = now, self._level_flight(out.setpoint), 0
+                    self._pass_peak = max(box.w, box.h) if valid else 0.0
                     self.sm.go(State.PASS, f"gate close: {est.why}")
                 else:
                     self._start_recover(f"pull-up: {est.why}")
                     sp = self._recover_sp
         elif st is State.PASS:
             sp = self._pass_sp  # hold the attitude that points at the gate until it is behind us
-            self._gone = 0 if valid else self._gone + 1
+            size = max(box.w, box.h) if valid else 0.0
+            # Gone: no box, or a box far smaller than the one we were passing (the next gate behind it).
+            self._gone = 0 if size > 0.5 * self._pass_peak else self._gone + 1
+            self._pass_peak = max(self._pass_peak, size)
             if self._gone >= PASS_GONE_FRAMES or now - self._pass_start > self.cfg.app.pass_timeout:
                 self.stats.gates_passed += 1
                 why = "gate left the view" if self._gone >= PASS_GONE_FRAMES else "pass timeout"
@@ -517,16 +525,13 @@ class FlightApp:
             self.log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
 
 
-def gate_logger(log: FlightLog) -> Callable[[Any, np.ndarray | None, float, bool], None]:
-    """Callback for the synthetic camera: log the virtual gate in view (scene ENU -> NED). Scoring only."""
+def gate_logger(log: FlightLog) -> Callable[[int, Any, np.ndarray, float, bool], None]:
+    """Callback for the synthetic camera: log each virtual gate (scene ENU -> NED). Scoring only."""
     from companion.frames import enu_to_ned
 
-    def on_gate(gate: Any, c_enu: np.ndarray | None, radius: float, visible: bool) -> None:
-        if gate is None or c_enu is None:
-            log.write("gate", visible=False)
-            return
+    def on_gate(k: int, gate: Any, c_enu: np.ndarray, radius: float, visible: bool) -> None:
         c, n = enu_to_ned(c_enu), enu_to_ned(gate.normal)
-        log.write("gate", gate_n=c[0], gate_e=c[1], gate_d=c[2], normal_n=n[0], normal_e=n[1], normal_d=n[2],
-                  radius=radius, visible=visible)
+        log.write("gate", k=k, gate_n=c[0], gate_e=c[1], gate_d=c[2], normal_n=n[0], normal_e=n[1],
+                  normal_d=n[2], radius=radius, visible=visible)
 
     return on_gate

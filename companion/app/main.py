@@ -246,3 +246,57 @@ class SimPX4Process:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+# ---------------------------------------------------------------------------------- companion sim
+
+
+def detector_available(cfg: Config) -> str | None:
+    """None when the configured detector loads, else the one-line reason it does not."""
+    try:
+        from perception.detector import Detector
+
+        Detector.from_config(cfg.perception)
+        return None
+    except Exception as e:  # a missing or broken model file
+        return f"{type(e).__name__}: {e}"
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    """``companion sim``: simulated PX4 (own process) + synthetic camera + the app, in real time."""
+    from companion.config import load_config
+    from companion.flightlog import gate_crossings, read_flight
+
+    ov = [*getattr(args, "overrides", []), "app.camera=synthetic"]
+    if getattr(args, "motion", None):
+        ov.append(f"app.synthetic.motion={args.motion}")
+    if getattr(args, "seed", None) is not None:
+        ov.append(f"sim.seed={args.seed}")
+    cfg = load_config(args.config, ov)
+    if cfg.app.synthetic.render == "image":
+        why = detector_available(cfg)
+        if why is not None:
+            print(f"companion sim: detector unavailable ({why}); using the geometric camera", file=sys.stderr)
+            ov.append("app.synthetic.render=geometric")
+    with SimPX4Process(args.config, [o for o in ov if o.startswith(("sim.", "airframe."))]) as px4:
+        print(f"companion sim: simulated PX4 on 127.0.0.1:{px4.port} (pid {px4.proc.pid})", file=sys.stderr)
+        cfg = load_config(args.config, [*ov, f"link.url={px4.url}"])
+        reason, folder, summary = asyncio.run(fly(cfg, status_line=not getattr(args, "no_status", False),
+                                                  plot=not getattr(args, "no_plot", False)))
+    f = read_flight(folder)
+    cross = gate_crossings(f)
+    lat = summary.get("frame_to_setpoint_ms", {})
+    print(f"outcome: {summary.get('outcome')} ({summary.get('reason')}): {summary.get('detail')}")
+    for i, c in enumerate(cross, 1):
+        print(f"gate {i}: crossed at t = {c.t:.2f} s, {c.d_center:.2f} m from the centre "
+              f"({'through' if c.through else 'missed'}, radius {c.radius:.2f} m)")
+    if lat.get("p50") is not None:
+        print(f"frame -> setpoint latency: p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms; "
+              f"app CPU {summary.get('cpu_percent', 0):.0f} %")
+    print(f"log: {folder}" + (f"  plot: {folder / 'plot.png'}" if (folder / "plot.png").exists() else ""))
+    return int(reason)
+
+
+def add_sim_arguments(p: argparse.ArgumentParser) -> None:
+    """The options ``companion sim`` adds for its default (simulated PX4 + app) mode."""
+    p.add_argument("--no-status", action="store_true", help="no live status line on stderr")

@@ -66,6 +66,8 @@ class FaultInjector:
             return BoundingBox(math.nan, math.nan, math.nan, math.nan, 1.0, t)
         if self.kind == "lose_target":
             return None
+        if self.kind == "exception":
+            raise RuntimeError("injected perception failure (app.synthetic.fault=exception)")
         if self.kind == "los_jump" and box is not None and self.jumped < 2:
             # Two frames of a box on the far side of the image (a tracker switching targets), then back.
             self.jumped += 1
@@ -116,7 +118,7 @@ class SyntheticCamera:
         pose: Callable[[], VehiclePose | None],
         render: str | None = None,
         clock: Callable[[], float] = time.monotonic,
-        on_gate: Callable[[GateMotion | None, np.ndarray | None, float, bool], None] | None = None,
+        on_gate: Callable[[int, GateMotion, np.ndarray, float, bool], None] | None = None,
     ) -> None:
         self.cfg = cfg
         self.pose = pose
@@ -184,13 +186,10 @@ class SyntheticCamera:
         else:
             image = self._render(t, p_enu, R_enu_flu, best)
         if self.on_gate is not None:
-            # Log the gate in view, else the one just passed (behind the camera): scoring needs the crossing.
-            logged = best
-            if logged is None:
-                behind = [(float((g.position(ts) - p_enu) @ R_enu_flu[:, 0]), g) for g in self.scene.gates]
-                d, g = max(behind, key=lambda x: x[0])
-                logged = (d, g, g.position(ts))
-            self.on_gate(logged[1], logged[2], self.scene.radius, box is not None)
+            # Every gate, every frame (scoring needs each one's plane crossing); visible = the one drawn.
+            for k, g in enumerate(self.scene.gates, 1):
+                in_view = best is not None and g is best[1] and (box is not None or image is not None)
+                self.on_gate(k, g, g.position(ts), self.scene.radius, in_view)
         return Frame(self.index, t, image, box)
 
     def _render(self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray,

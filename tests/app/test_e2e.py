@@ -69,3 +69,17 @@ def test_fly_through_moving_gate_end_to_end(sim, tmp_path):
     idx = [next(i for i, e in enumerate(ev) if e.startswith(k)) for k in keys]
     assert idx == sorted(idx), ev
     assert not any(e.startswith("failsafe") for e in ev)
+
+
+def test_next_gate_in_view_is_engaged(sim, tmp_path):
+    """Two stationary gates in a row: pass, recover, engage the next, pass, then land."""
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.synthetic.count=2", "app.synthetic.motion=stationary")
+    reason, folder, summary = run_flight(cfg)
+    assert reason is Reason.OK, summary
+    f = read_flight(folder)
+    path = f.state_path()
+    assert path[path.index("ENGAGE"):] == ["ENGAGE", "PASS", "RECOVER", "ENGAGE", "PASS", "RECOVER", "HANDBACK",
+                                           "LAND", "SAFE_LANDED"]
+    assert f.summary["gates_passed"] == 2
+    crossings = gate_crossings(f)
+    assert len(crossings) == 2 and all(c.through for c in crossings), crossings

@@ -156,3 +156,25 @@ def test_altitude_floor(sim, tmp_path):
     t_hb = next(float(r["t"]) for r in f.states if r["to_state"] == "HANDBACK")
     tr = f["truth"]
     assert -tr["d"][np.searchsorted(tr["t"], t_hb) - 1] < 7.0
+
+
+def test_exception_in_perception(sim, tmp_path):
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.synthetic.fault=exception", "app.synthetic.fault_after=1.5")
+    reason, folder, _ = run_flight(cfg)
+    f, end, why = _end(folder)
+    assert reason is Reason.EXCEPTION and end == "SAFE_HOLD", why
+    assert "RuntimeError: injected perception failure" in why
+    assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_HOLD"]
+    assert sim.mode == "HOLD"
+    _check_log_intact(f, "HANDBACK")
+
+
+def test_max_engagement_time(sim, tmp_path):
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "safety.max_engagement_time=1.0")
+    reason, folder, _ = run_flight(cfg)
+    f, end, why = _end(folder)
+    assert reason is Reason.MAX_ENGAGEMENT and end == "SAFE_HOLD", why
+    t_eng = next(float(r["t"]) for r in f.states if r["to_state"] == "ENGAGE")
+    t_hb = next(float(r["t"]) for r in f.states if r["to_state"] == "HANDBACK")
+    assert 1.0 <= t_hb - t_eng <= 1.5
+    assert sim.mode == "HOLD"
