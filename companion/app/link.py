@@ -41,13 +41,16 @@ MAVSDK itself resends the last setpoint at ~20 Hz for as long as the process liv
 offboard-loss failsafe never fires if the control task dies. When the vehicle leaves OFFBOARD on its
 own (pilot takeover, PX4 failsafe) the link never re-enters it: it stops commanding, swaps the
 setpoint MAVSDK keeps resending for a level hover one, and ``set_setpoint`` raises OffboardLost.
+A guard thread backs the watchdog up when the event loop itself stalls (2x the limit + 0.2 s).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import math
+import threading
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -210,6 +213,8 @@ class VehicleLink:
         self._last_fresh = -math.inf
         self._last_sent = -math.inf
         self._offboard_tasks: list[asyncio.Task] = []
+        self._guard_stop = threading.Event()
+        self._guard_busy = False
 
     @classmethod
     def from_config(cls, cfg: Any, on_event: Callable[[str, dict[str, Any]], None] | None = None) -> VehicleLink:
@@ -651,6 +656,7 @@ class VehicleLink:
         self._last_fresh = time.monotonic()
         self._offboard_tasks = [asyncio.create_task(self._stream(), name="link:setpoint_stream"),
                                 asyncio.create_task(self._watchdog(), name="link:watchdog")]
+        self._start_loop_guard()
         self._emit("offboard_started")
 
     async def set_setpoint(self, sp: SetpointLike) -> None:
@@ -696,6 +702,43 @@ class VehicleLink:
                 return
             await asyncio.sleep(min(0.05, self._setpoint_timeout / 4))
 
+    def _start_loop_guard(self) -> None:
+        """Second line behind ``_watchdog``, in a thread: it still works when the event loop itself is stuck.
+
+        A stalled loop (sync code that never returns) runs no asyncio task, while MAVSDK's own thread
+        keeps resending the last setpoint. After twice the watchdog limit without a fresh setpoint this
+        thread stops offboard through mavsdk's blocking API (PX4 -> HOLD).
+        """
+        plugin = getattr(self._offboard, "_plugin", None)  # the blocking Offboard behind mavsdk's async wrapper
+        if plugin is None:
+            return
+        loop = asyncio.get_running_loop()
+        self._guard_stop = stop = threading.Event()
+        limit = 2.0 * self._setpoint_timeout + 0.2
+
+        def run() -> None:
+            while not stop.wait(0.05):
+                if not self._offboard_active:
+                    return
+                age = time.monotonic() - self._last_fresh
+                if age <= limit:
+                    continue
+                self._offboard_active = False
+                self._offboard_end_reason = (f"loop guard: no fresh setpoint for {age:.2f} s and the event loop "
+                                             "is stalled, handed over to HOLD")
+                self._guard_busy = True
+                try:
+                    result: object = plugin.stop()
+                except Exception as e:  # reported below; the thread must end either way
+                    result = e
+                finally:
+                    self._guard_busy = False
+                with contextlib.suppress(RuntimeError):  # loop already closed
+                    loop.call_soon_threadsafe(functools.partial(self._emit, "loop_guard", age=age, result=str(result)))
+                return
+
+        threading.Thread(target=run, name="link:loop_guard", daemon=True).start()
+
     async def _left_offboard(self, reason: str) -> None:
         """The vehicle left OFFBOARD on its own: stop commanding, never re-enter, defuse MAVSDK's resends."""
         if not self._offboard_active:
@@ -710,6 +753,7 @@ class VehicleLink:
             await self._send(_Sp(0.0, 0.0, yaw, min(max(self._hover_value, self._thrust_min), 1.0)))
 
     def _stop_offboard_tasks(self, reason: str) -> None:
+        self._guard_stop.set()
         if self._offboard_active:
             self._offboard_active = False
             self._offboard_end_reason = reason
@@ -758,8 +802,11 @@ class VehicleLink:
         self._tasks = []
         if self._inflight:
             await asyncio.wait(set(self._inflight), timeout=timeout)
+        deadline = time.monotonic() + timeout
+        while self._guard_busy and time.monotonic() < deadline:  # the loop guard's blocking stop()
+            await asyncio.sleep(self.POLL)
         if self._mavsdk is not None:
-            if self._inflight:
+            if self._inflight or self._guard_busy:
                 self._emit("close_leaked", inflight=len(self._inflight))
             else:
                 self._mavsdk.destroy()

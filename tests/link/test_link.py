@@ -259,3 +259,25 @@ def test_bad_setpoints_and_urls_are_one_line_errors(sim: SimPX4, cfg: Config) ->
         await bad.close()
 
     run(body, 25)
+
+
+@pytest.mark.timeout(60)
+def test_loop_guard_hands_over_when_the_event_loop_stalls(sim: SimPX4, cfg: Config) -> None:
+    """Sync code blocks the event loop: no asyncio watchdog can run, MAVSDK keeps resending the last
+    setpoint (so PX4's own failsafe never fires), and the link's guard thread must stop offboard."""
+    import time
+
+    async def body() -> None:
+        async with await flying_link(sim, cfg) as link:
+            await link.start_offboard(setpoint(link))
+            t_stall = sim.time
+            time.sleep(2.0 * cfg.safety.perception_stall_timeout + 1.5)  # the whole loop is stuck here
+            ev = sim.wait_event("mode:HOLD:command", 0.0, since=t_stall)
+            assert ev is not None  # it happened while the loop was still blocked
+            assert sim.wait_event("failsafe:offboard_loss", 0.0) is None
+            await asyncio.sleep(0.1)  # the guard's report reaches the loop
+            assert [e for e in link.events if e[1] == "loop_guard"]
+            with pytest.raises(OffboardLost, match="loop guard"):
+                await link.set_setpoint(setpoint(link))
+
+    run(body, 50)
