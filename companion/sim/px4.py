@@ -8,7 +8,8 @@ switch commands from stdin, stops on SIGTERM/SIGINT or ``quit``).
 Public API (names are stable; the flight app and its tests rely on them)::
 
     SimPX4(config=None, *, port=0, params=None, px4_params=None, initial_state=None,
-           heartbeat_hz=1.0, telemetry_hz=50.0, noise=True)
+           initial_mode="HOLD", heartbeat_hz=1.0, telemetry_hz=50.0, noise=True)
+    (an initial_state in the air starts armed, holding in initial_mode: HOLD or POSCTL)
     .start() / .stop() / context manager
     .port, .url_for_mavsdk ("udpout://127.0.0.1:PORT")
     .truth() -> QuadState copy (ground truth, ENU/FLU)
@@ -187,6 +188,7 @@ class SimPX4:
         params: QuadParams | None = None,
         px4_params: Mapping[str, float] | None = None,
         initial_state: QuadState | None = None,
+        initial_mode: str = "HOLD",
         heartbeat_hz: float = 1.0,
         telemetry_hz: float = 50.0,
         noise: bool = True,
@@ -257,6 +259,12 @@ class SimPX4:
         self._hold_p = np.array(s.p, float)
         self._hold_yaw = self._yaw_of(s.q)
         self._takeoff_alt = 0.0
+        if initial_mode not in _POSITION_MODES:
+            raise ValueError(f"SimPX4: initial_mode must be one of {', '.join(_POSITION_MODES)} (got {initial_mode!r})")
+        self._mode = initial_mode
+        if not s.on_ground:  # a scenario that starts in the air starts armed and flying (else it would drop)
+            self._armed = True
+            self._was_airborne = True
         self._pos_ctrl = _PositionController()
         self._baro_alt = HOME_ALT
         self._dropped = False
@@ -788,6 +796,10 @@ class SimPX4:
     def _send_telemetry(self) -> None:
         if self._dropped or not self._peers:
             return
+        # Forget clients silent for 5 s (MAVSDK sends a heartbeat every second): no sends to dead ports.
+        for addr, t_heard in list(self._peers.items()):
+            if self._t - t_heard > 5.0:
+                del self._peers[addr]
         t = self._t
         due = [mid for mid, iv in self._rates.items() if iv > 0 and t >= self._next_send.get(mid, 0.0)]
         if not due:

@@ -100,6 +100,17 @@ class RawGcs:
                     return m
         return None
 
+    def drain(self) -> None:
+        """Throw away everything already queued (old telemetry), so the next recv() is fresh."""
+        self.sock.setblocking(False)
+        try:
+            while True:
+                self.sock.recvfrom(65536)
+        except BlockingIOError:
+            pass
+        finally:
+            self.sock.settimeout(0.05)
+
     def ack(self, cmd: int, timeout: float = 2.0) -> int | None:
         m = self.recv(lambda m: m.get_type() == "COMMAND_ACK" and m.command == cmd, timeout)
         return None if m is None else m.result

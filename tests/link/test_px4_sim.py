@@ -205,3 +205,44 @@ def test_takeoff_and_hold_against_wind() -> None:
         assert up == pytest.approx(thrust / np.linalg.norm(thrust), abs=0.004)
         assert up[0] < -0.005 and up[1] > 0.0
         gcs.close()
+
+
+@pytest.mark.timeout(40)
+def test_airborne_start_holds_and_streams_pose_for_the_synthetic_camera(cfg: Config) -> None:
+    """A scenario starting in the air starts armed in HOLD; LOCAL_POSITION_NED / HIL_STATE_QUATERNION
+    carry the true pose (NED by hand: north = ENU y, east = ENU x, down = -ENU z) at the telemetry rate."""
+    from companion.sim.dynamics import QuadState
+
+    start = QuadState(p=np.array([2.0, -1.0, 10.0]), v=np.array([4.0, 0.0, 0.0]), on_ground=False)
+    with SimPX4(cfg, initial_state=start, noise=False) as sim:
+        assert sim.armed and sim.mode == "HOLD"
+        gcs = RawGcs(sim.port)
+        gcs.heartbeat()
+        assert sim.wait_for(lambda: sim.time > 6.0, 20.0)
+        s = sim.truth()
+        assert not s.on_ground and np.linalg.norm(s.v) < 0.5 and s.p[2] == pytest.approx(10.0, abs=0.5)
+        assert abs(s.p[1] + 1.0) < 0.5  # it braked along x, kept y
+        gcs.heartbeat()  # the sim forgets clients silent for 5 s, as a heartbeat-less GCS would be dead
+        gcs.drain()
+        lp = gcs.recv(lambda m: m.get_type() == "LOCAL_POSITION_NED", 2.0)
+        s = sim.truth()
+        assert [lp.x, lp.y, lp.z] == pytest.approx([s.p[1], s.p[0], -s.p[2]], abs=0.05)
+        n0 = sim.time
+        stamps = set()
+        while sim.time < n0 + 1.0:
+            m = gcs.recv(lambda m: m.get_type() == "HIL_STATE_QUATERNION", 1.0)
+            stamps.add(m.time_usec)
+        assert len(stamps) >= 30  # >= 30 Hz of ground truth, as the synthetic camera needs
+        gcs.drain()
+        m = gcs.recv(lambda m: m.get_type() == "HIL_STATE_QUATERNION", 1.0)
+        s = sim.truth()
+        from companion.sim.px4 import HOME_ALT, HOME_LAT
+
+        assert m.lat * 1e-7 == pytest.approx(HOME_LAT + math.degrees(s.p[1] / 6_378_137.0), abs=1e-6)
+        assert m.alt * 1e-3 == pytest.approx(HOME_ALT + s.p[2], abs=0.1)
+        gcs.close()
+
+
+def test_initial_mode_must_be_a_position_mode() -> None:
+    with pytest.raises(ValueError, match="initial_mode must be one of POSCTL, HOLD"):
+        SimPX4(initial_mode="OFFBOARD")
