@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import math
 import select
 import signal
@@ -862,7 +863,7 @@ class SimPX4:
 # ------------------------------------------------------------------------------ process entry point
 _SWITCH_HELP = (
     "stdin commands: deny_arming 0|1, deny_offboard 0|1, drop 0|1, silence 0|1, "
-    "takeover [POSCTL|HOLD|LAND], param NAME VALUE, state, quit"
+    "takeover [POSCTL|HOLD|LAND], param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit"
 )
 
 
@@ -888,6 +889,11 @@ def _stdin_command(sim: SimPX4, line: str) -> str:
             s = sim.truth()
             return (f"STATE t={sim.time:.3f} mode={sim.mode} armed={int(sim.armed)} "
                     f"p={s.p[0]:.3f},{s.p[1]:.3f},{s.p[2]:.3f} v={s.v[0]:.3f},{s.v[1]:.3f},{s.v[2]:.3f}")
+        elif cmd == "events":
+            return "EVENTS " + json.dumps([[round(t, 4), what] for t, what in sim.events])
+        elif cmd == "wait_event":
+            ev = sim.wait_event(args[0], float(args[1]))
+            return "TIMEOUT" if ev is None else f"EVENT {ev[0]:.4f} {ev[1]}"
         elif cmd == "quit":
             return "BYE"
         else:

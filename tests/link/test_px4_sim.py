@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import socket
 import subprocess
@@ -160,6 +161,14 @@ def test_process_entry_point_prints_port_obeys_stdin_and_sigterm() -> None:
         assert proc.stdout.readline().strip() == "OK"
         gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
         assert gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == mavlink.MAV_RESULT_DENIED
+        proc.stdin.write("wait_event arm_denied 5\n")
+        proc.stdin.flush()
+        assert proc.stdout.readline().split()[2] == "arm_denied:switch"
+        proc.stdin.write("events\n")
+        proc.stdin.flush()
+        line = proc.stdout.readline()
+        assert line.startswith("EVENTS ")
+        assert "arm_denied:switch" in [what for _, what in json.loads(line[len("EVENTS "):])]
         proc.stdin.write("bogus\n")
         proc.stdin.flush()
         assert proc.stdout.readline().startswith("ERROR unknown command 'bogus'")
