@@ -196,13 +196,21 @@ class FlightApp:
         await self._fly()
 
     async def _wait_pilot_hover(self) -> None:
+        """Armed, in the air, above the altitude floor, not in an automatic take-off or landing, for 1 s."""
         deadline = self.clock() + self.cfg.app.pilot_wait_timeout
         link = self.link
-        while not (link.armed and link.landed_state == "IN_AIR"):
+        since: float | None = None
+        while True:
+            alt = self._baro_rel()
+            hovering = (link.armed and link.landed_state == "IN_AIR" and link.flight_mode not in ("TAKEOFF", "LAND")
+                        and (alt is None or alt > self.cfg.safety.altitude_floor))
+            since = (since or self.clock()) if hovering else None
+            if since is not None and self.clock() - since >= 1.0:
+                return
             if self.clock() > deadline:
-                raise _Tripped(Abort(Reason.NO_TARGET, "the pilot did not take off in time"))
+                raise _Tripped(Abort(Reason.NO_TARGET, f"the pilot did not hover within "
+                                     f"{self.cfg.app.pilot_wait_timeout:.0f} s"))
             await asyncio.sleep(0.1)
-        self._baro0 = self._baro0 if self._baro0 is not None else self._baro_raw()
 
     async def _fly(self) -> None:
         """The frame loop: ACQUIRE -> ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK -> LAND."""
@@ -321,11 +329,18 @@ class FlightApp:
         self.sm.go(State.RECOVER, why)
 
     async def _land_normally(self, reason: Reason, why: str, via: State) -> None:
+        pilot = self.cfg.app.start == "pilot"  # the pilot took off, the pilot lands
         if via is State.HANDBACK:
             self.sm.go(State.HANDBACK, why)
             self._last_setpoint = math.inf  # we no longer owe setpoints
             await self.link.stop_offboard()
+            if pilot:
+                self.sm.go(State.SAFE_HOLD, "PX4 holds; the pilot lands", reason)
+                return
             why = "PX4 holds; landing"
+        elif pilot:
+            self.sm.go(State.SAFE_PILOT, why + "; the pilot keeps control", reason)
+            return
         self.sm.go(State.LAND, why)
         await self.link.land()
         await self.link.wait_landed_and_disarm()

@@ -47,8 +47,22 @@ async def wait_state(app: Any, name: str, timeout: float = 30.0) -> None:
 def run_flight(cfg: Config, alongside: Callable[[Any], Awaitable[None]] | None = None) -> tuple[Any, Path, dict]:
     from companion.app.main import fly
 
-    async def main() -> tuple[Any, Path, dict]:
-        return await asyncio.wait_for(fly(cfg, plot=False, handle_signals=False, alongside=alongside),
-                                      FLIGHT_TIMEOUT)
+    errors: list[BaseException] = []
 
-    return asyncio.run(main())
+    async def side(app: Any) -> None:
+        try:
+            await alongside(app)  # type: ignore[misc]
+        except asyncio.CancelledError:
+            raise
+        except BaseException as e:  # surfaced after the flight: a broken fault injection fails the test
+            errors.append(e)
+
+    async def main() -> tuple[Any, Path, dict]:
+        return await asyncio.wait_for(
+            fly(cfg, plot=False, handle_signals=False, alongside=side if alongside is not None else None),
+            FLIGHT_TIMEOUT)
+
+    result = asyncio.run(main())
+    if errors:
+        raise errors[0]
+    return result
