@@ -178,3 +178,18 @@ def test_max_engagement_time(sim, tmp_path):
     t_hb = next(float(r["t"]) for r in f.states if r["to_state"] == "HANDBACK")
     assert 1.0 <= t_hb - t_eng <= 1.5
     assert sim.mode == "HOLD"
+
+
+def test_no_autopilot_is_connect_failed(tmp_path):
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))  # a port with nobody speaking MAVLink on it
+    try:
+        cfg = make_config(tmp_path, f"udpout://127.0.0.1:{s.getsockname()[1]}", "link.connect_timeout=2")
+        reason, folder, _ = run_flight(cfg)
+    finally:
+        s.close()
+    f, end, why = _end(folder)
+    assert reason is Reason.CONNECT_FAILED and end == "ABORT_NOT_ARMED", why
+    assert f.state_path() == ["CONNECT", "ABORT_NOT_ARMED"] and "no autopilot" in why
