@@ -45,6 +45,7 @@ TOPICS: dict[str, tuple[str, ...]] = {
     "telemetry": (
         "t", "t_att", "qw", "qx", "qy", "qz", "roll_deg", "pitch_deg", "yaw_deg",
         "baro_alt_m", "flight_mode", "armed", "landed_state",
+        "acc_f", "acc_r", "acc_d", "gyro_f", "gyro_r", "gyro_d",  # IMU, body FRD (specific force m/s^2, rad/s)
     ),
     # Ground truth / EKF position & velocity: for scoring and plots only, never a controller input.
     "truth": ("t", "n", "e", "d", "vn", "ve", "vd"),

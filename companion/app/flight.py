@@ -523,6 +523,13 @@ class FlightApp:
                        roll_deg=sp.roll_deg, pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg, thrust=sp.thrust,
                        latency_ms=lat_ms)
 
+    def _imu_columns(self) -> dict[str, float]:
+        imu = self.link.imu
+        if imu is None:
+            return {}
+        a, g = imu.accel_frd, imu.gyro_frd
+        return {"acc_f": a[0], "acc_r": a[1], "acc_d": a[2], "gyro_f": g[0], "gyro_r": g[1], "gyro_d": g[2]}
+
     def _log_telemetry(self) -> None:
         link = self.link
         att = link.attitude
@@ -533,7 +540,7 @@ class FlightApp:
         self.log.write("telemetry", t_att=att.t_rx - self.log.t0 if att is not None else None,
                        qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
                        baro_alt_m=self._baro_raw(), flight_mode=link.flight_mode, armed=link.armed,
-                       landed_state=link.landed_state)
+                       landed_state=link.landed_state, **self._imu_columns())
         truth = link.truth_for_log  # log only: scoring and plots, never an input of the controller
         if truth is not None:
             pn, vn = truth.position_ned, truth.velocity_ned

@@ -41,6 +41,8 @@ def test_fly_through_moving_gate_end_to_end(sim, tmp_path):
     assert _mode_during(f, "ENGAGE") == {"OFFBOARD"}
     assert "OFFBOARD" not in _mode_during(f, "LAND")
     assert tel["landed_state"][-1] == "ON_GROUND"
+    # IMU at rest on the ground before arming: specific force ~ -g along body down.
+    assert np.nanmedian(tel["acc_d"][:5]) == pytest.approx(-9.81, abs=0.3)
 
     # The gate moved (linear fast, 5 m/s) and the vehicle crossed its plane inside the ring.
     gate = f["gate"]
