@@ -14,24 +14,29 @@ Public API (names are stable; the flight app and its tests rely on them)::
     .port, .url_for_mavsdk ("udpout://127.0.0.1:PORT")
     .truth() -> QuadState copy (ground truth, ENU/FLU)
     .mode (str: POSCTL, HOLD, TAKEOFF, LAND, OFFBOARD), .armed, .landed, .time (sim s)
-    .events -> list[(t, what)] copy; .wait_event(prefix, timeout) / .wait_for(pred, timeout)
+    .events -> list[(t, what)] copy; .wait_event(prefix, timeout, since=-inf) / .wait_for(pred, timeout)
     .param(name) / .set_param(name, value)
+    .setpoint_count, .last_setpoint() -> (t, q_xyzw ENU/FLU, thrust), .stats(), .monotonic_of(t_sim)
     switches: .deny_arming, .deny_offboard (bool attributes), .drop_link(on), .silence_commands(on),
               .pilot_takeover(mode="POSCTL")
+    process stdin (one reply line each): deny_arming 0|1, deny_offboard 0|1, drop 0|1, silence 0|1,
+              takeover MODE, param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit
 
 Events (``what`` strings, ``kind:detail``): ``mode:<MODE>:<why>`` (why = command, failsafe,
-takeoff_done, pilot, landed), ``arm``, ``disarm:<why>`` (command, force, auto_land, auto_preflight),
-``arm_denied:<why>``, ``offboard_denied:<why>`` (no_setpoints, switch, not_armed), ``failsafe:offboard_loss``,
-``takeoff``, ``land``, ``command:<id>``, ``silenced:<id>``, ``param_set:<NAME>``, ``link:dropped``,
-``link:restored``, ``touchdown``.
+takeoff_done, pilot), ``mode_denied:<main>.<sub>``, ``arm``, ``disarm:<why>`` (command, force,
+auto_land, auto_preflight), ``arm_denied:<why>`` (switch, in_air), ``offboard_denied:<why>``
+(no_setpoints, switch), ``failsafe:offboard_loss``, ``takeoff``, ``land``, ``touchdown``,
+``command:<id>``, ``silenced:<id>``, ``param_set:<NAME>``, ``link:dropped``, ``link:restored``.
 
-Where it departs from PX4 (on purpose): its own modes (takeoff, hold, position, land) fly a simple
-cascaded P/P position controller on ground truth (PX4 flies its EKF); the attitude estimate it
-reports is truth plus noise and a per-run bias; a heartbeat is also sent at once on every mode or
-arming change (PX4 waits for the next 1 Hz tick); the offboard-loss failsafe follows
+Where it departs from PX4 (on purpose): its own modes (takeoff, hold, position, land) fly a
+cascaded P (position) / PI (velocity) controller on ground truth with the true hover thrust (PX4
+flies its EKF and a hover-thrust estimate); the attitude estimate, IMU and barometer come from
+companion/sim/sensors.py (truth + per-run bias + noise); a heartbeat is also sent at once on every
+mode or arming change (PX4 waits for the next 1 Hz tick); the offboard-loss failsafe follows
 ``COM_OBL_RC_ACT`` with the sim's default 5 (Hold) — PX4's default 0 (Position mode) also holds
 position when the sticks are centred. OFFBOARD needs an attitude setpoint (SET_ATTITUDE_TARGET) in
-the last ``COM_OF_LOSS_T``; other setpoint types are ignored.
+the last ``COM_OF_LOSS_T``; other setpoint types are ignored. It answers whoever sent it a datagram
+in the last 5 s (MAVSDK heartbeats every second); a client that stays silent longer is forgotten.
 """
 
 from __future__ import annotations
@@ -121,7 +126,7 @@ def _nan_to(x: float, default: float) -> float:
 
 
 class _PositionController:
-    """PX4-like cascaded controller for the autopilot's own modes: position P -> velocity P -> accel.
+    """PX4-like cascaded controller for the autopilot's own modes: position P -> velocity PI -> accel.
 
     Output: attitude (xyzw, body FLU -> ENU) and normalised thrust, from ground truth.
     """
@@ -218,7 +223,6 @@ class SimPX4:
 
         self._port_req = int(port)
         self._heartbeat_dt = 1.0 / heartbeat_hz
-        self._rates: dict[int, float] = {}  # msg id -> interval s (0 = off)
         self._default_rates = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat_dt,
             mavlink.MAVLINK_MSG_ID_SYS_STATUS: 0.2,
@@ -232,7 +236,7 @@ class SimPX4:
             mavlink.MAVLINK_MSG_ID_ALTITUDE: 0.05,
             mavlink.MAVLINK_MSG_ID_HOME_POSITION: 2.0,
         }
-        self._rates = dict(self._default_rates)
+        self._rates: dict[int, float] = dict(self._default_rates)  # msg id -> interval s (0 = off)
         self._next_send: dict[int, float] = dict.fromkeys(self._rates, 0.0)
 
         self._lock = threading.RLock()
@@ -267,7 +271,6 @@ class SimPX4:
             self._armed = True
             self._was_airborne = True
         self._pos_ctrl = _PositionController()
-        self._baro_alt = HOME_ALT
         self._dropped = False
         self._silenced = False
         self.deny_arming = False
@@ -455,6 +458,7 @@ class SimPX4:
     def _arm(self) -> None:
         self._armed = True
         self._armed_at = self._t
+        self._pos_ctrl = _PositionController()  # no integrator left over from the last flight
         self._was_airborne = False
         self._landed_since = None
         self._event("arm")
