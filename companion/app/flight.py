@@ -95,7 +95,6 @@ class FlightApp:
         self._baro0: float | None = None
         self._connected = False
         self._last_out: ControlOutput | None = None
-        self._status = ""
 
     # ------------------------------------------------------------------------------ public
     def trip(self, reason: Reason, detail: str) -> None:

@@ -193,3 +193,15 @@ def test_no_autopilot_is_connect_failed(tmp_path):
     f, end, why = _end(folder)
     assert reason is Reason.CONNECT_FAILED and end == "ABORT_NOT_ARMED", why
     assert f.state_path() == ["CONNECT", "ABORT_NOT_ARMED"] and "no autopilot" in why
+
+
+def test_no_target_in_view_lands(sim, tmp_path):
+    # The virtual gate is 60 m to the side: never in view. Nothing to engage -> land where we are.
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.synthetic.lateral_offset=60", "app.acquire_timeout=1.5")
+    reason, folder, _ = run_flight(cfg)
+    f, end, why = _end(folder)
+    assert reason is Reason.NO_TARGET and end == "SAFE_LANDED", why
+    assert f.state_path()[-4:] == ["TAKEOFF", "ACQUIRE", "LAND", "SAFE_LANDED"]
+    assert "no stable track within 1.5 s" in f.states[-2]["reason"]
+    assert (f["detections"]["valid"] == 0).all() and len(f["setpoints"]) == 0
+    assert not sim.armed and sim.landed
