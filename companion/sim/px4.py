@@ -17,14 +17,15 @@ Public API (names are stable; the flight app and its tests rely on them)::
     .events -> list[(t, what)] copy; .wait_event(prefix, timeout, since=-inf) / .wait_for(pred, timeout)
     .param(name) / .set_param(name, value)
     .setpoint_count, .last_setpoint() -> (t, q_xyzw ENU/FLU, thrust), .stats(), .monotonic_of(t_sim)
-    switches: .deny_arming, .deny_offboard (bool attributes), .drop_link(on), .silence_commands(on),
+    switches: .deny_arming, .deny_offboard, .fail_preflight (bool attributes), .drop_link(on), .silence_commands(on),
               .pilot_takeover(mode="POSCTL")
-    process stdin (one reply line each): deny_arming 0|1, deny_offboard 0|1, drop 0|1, silence 0|1,
+    process stdin (one reply line each): deny_arming 0|1, deny_offboard 0|1, fail_preflight 0|1,
+              drop 0|1, silence 0|1,
               takeover MODE, param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit
 
 Events (``what`` strings, ``kind:detail``): ``mode:<MODE>:<why>`` (why = command, failsafe,
 takeoff_done, pilot), ``mode_denied:<main>.<sub>``, ``arm``, ``disarm:<why>`` (command, force,
-auto_land, auto_preflight), ``arm_denied:<why>`` (switch, in_air), ``offboard_denied:<why>``
+auto_land, auto_preflight), ``arm_denied:<why>`` (switch, preflight, in_air), ``offboard_denied:<why>``
 (no_setpoints, switch), ``failsafe:offboard_loss``, ``takeoff``, ``land``, ``touchdown``,
 ``command:<id>``, ``silenced:<id>``, ``param_set:<NAME>``, ``link:dropped``, ``link:restored``.
 
@@ -275,6 +276,7 @@ class SimPX4:
         self._silenced = False
         self.deny_arming = False
         self.deny_offboard = False
+        self.fail_preflight = False  # SYS_STATUS reports the preflight checks failed; arming is refused
         self.overruns = 0  # physics steps skipped because the thread fell behind real time
         self._busy = 0.0  # s of CPU-bound work in the sim thread (for stats())
         self._t0_mono = math.nan
@@ -638,6 +640,10 @@ class SimPX4:
             if _nan_to(p[0], 0.0) >= 0.5:
                 if self._armed:
                     return ok
+                if self.fail_preflight:
+                    self._event("arm_denied:preflight")
+                    self._statustext("Arming denied: resolve system health failures first")
+                    return denied
                 if self.deny_arming:
                     self._event("arm_denied:switch")
                     self._statustext("Arming denied: preflight checks failed (simulated)")
@@ -856,8 +862,9 @@ class SimPX4:
         if mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE in due:
             self._send(self._mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, self._landed_state()))
         if mavlink.MAVLINK_MSG_ID_SYS_STATUS in due:
+            health = _SENSORS_ALL & ~mavlink.MAV_SYS_STATUS_PREARM_CHECK if self.fail_preflight else _SENSORS_ALL
             self._send(self._mav.sys_status_encode(
-                _SENSORS_ALL, _SENSORS_ALL, _SENSORS_ALL, 200, 16200, 1000, 90, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+                _SENSORS_ALL, _SENSORS_ALL, health, 200, 16200, 1000, 90, 0, 0, 0, 0, 0, 0, 0, 0, 0))
         if mavlink.MAVLINK_MSG_ID_HOME_POSITION in due:
             self._send_home()
         if mavlink.MAVLINK_MSG_ID_HEARTBEAT in due:
@@ -866,7 +873,7 @@ class SimPX4:
 
 # ------------------------------------------------------------------------------ process entry point
 _SWITCH_HELP = (
-    "stdin commands: deny_arming 0|1, deny_offboard 0|1, drop 0|1, silence 0|1, "
+    "stdin commands: deny_arming 0|1, deny_offboard 0|1, fail_preflight 0|1, drop 0|1, silence 0|1, "
     "takeover [POSCTL|HOLD|LAND], param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit"
 )
 
@@ -881,6 +888,8 @@ def _stdin_command(sim: SimPX4, line: str) -> str:
             sim.deny_arming = args[0] == "1"
         elif cmd == "deny_offboard":
             sim.deny_offboard = args[0] == "1"
+        elif cmd == "fail_preflight":
+            sim.fail_preflight = args[0] == "1"
         elif cmd == "drop":
             sim.drop_link(args[0] == "1")
         elif cmd == "silence":

@@ -281,3 +281,38 @@ def test_loop_guard_hands_over_when_the_event_loop_stalls(sim: SimPX4, cfg: Conf
                 await link.set_setpoint(setpoint(link))
 
     run(body, 50)
+
+
+@pytest.mark.timeout(30)
+def test_failed_preflight_gives_not_healthy_naming_the_check(sim: SimPX4, cfg: Config) -> None:
+    from companion.app.link import NotHealthy
+
+    sim.fail_preflight = True
+
+    async def body() -> None:
+        link = VehicleLink.from_config(cfg)
+        try:
+            await link.connect(sim.url_for_mavsdk, timeout=5.0)
+            with pytest.raises(NotHealthy, match=r"not ready after 2\.0 s: armable \(preflight checks\)$"):
+                await link.wait_healthy(timeout=2.0)
+            with pytest.raises(ArmDenied, match="COMMAND_DENIED"):
+                await link.arm()
+            sim.fail_preflight = False
+            await link.wait_healthy(timeout=5.0)
+        finally:
+            await link.close()
+
+    run(body, 25)
+
+
+@pytest.mark.timeout(30)
+def test_unusable_url_is_connect_failed(cfg: Config) -> None:
+    from companion.app.link import ConnectFailed
+
+    async def body() -> None:
+        link = VehicleLink.from_config(cfg)
+        with pytest.raises(ConnectFailed, match="cannot open connection 'udpin://localhost:14599'"):
+            await link.connect("udpin://localhost:14599", timeout=1.0)
+        await link.close()
+
+    run(body, 20)
