@@ -377,7 +377,7 @@ class VehicleLink:
         self._emit("connected", url=url)
         # Ask for the streams the control loop needs at a useful rate (best effort: PX4 may refuse).
         for name, rate in (("attitude_quaternion", 50.0), ("imu", 50.0), ("altitude", 20.0),
-                           ("landed_state", 5.0), ("position_velocity_ned", 30.0)):
+                           ("landed_state", 5.0), ("position_velocity_ned", 50.0)):
             try:
                 await self._call(f"set {name} rate", lambda n=name, r=rate: getattr(self._telemetry,
                                                                                     f"set_rate_{n}")(r), 2.0)
