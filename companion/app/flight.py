@@ -41,6 +41,19 @@ GROUND_STATES = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM
 PASS_GONE_FRAMES = 3  # frames without the gate after "close": it has left the view (passed)
 
 
+class _ClearLine:
+    """A text stream that clears the terminal line (the live status line) before each message."""
+
+    def __init__(self, inner: TextIO) -> None:
+        self.inner = inner
+
+    def write(self, text: str) -> int:
+        return self.inner.write(("\r\x1b[K" + text) if text.strip() else text)
+
+    def flush(self) -> None:
+        self.inner.flush()
+
+
 class _Tripped(Exception):
     """Raised inside the sequence for an abort it finds itself (safety limit, no target)."""
 
@@ -83,7 +96,10 @@ class FlightApp:
         self.status_line = status_line
         self.perception_in_thread = perception_in_thread
         self.clock = time.monotonic
-        self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=stderr)
+        # With a live status line, a state message first clears the line it would otherwise append to.
+        self._tty = bool(stderr is not None and getattr(stderr, "isatty", lambda: False)())
+        sm_err = _ClearLine(stderr) if status_line and self._tty else stderr
+        self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=sm_err)
         self.ctrl = PNController.from_config(cfg)
         self.width, self.height = cfg.camera.width, cfg.camera.height
         self.close_det = CloseDetector(cfg.app, self.width)
@@ -476,10 +492,11 @@ class FlightApp:
                 text = self._status_text()
                 self.notifier.status(text)
                 if self.status_line and self.stderr is not None:
-                    self.stderr.write("\r\x1b[K" + text)
+                    # One updating line on a terminal; plain lines in a file or the journal.
+                    self.stderr.write("\r\x1b[K" + text if self._tty else text + "\n")
                     self.stderr.flush()
             if self.sm.done:
-                if self.status_line and self.stderr is not None:
+                if self.status_line and self.stderr is not None and self._tty:
                     self.stderr.write("\n")
                 return
             await asyncio.sleep(period)

@@ -1,8 +1,12 @@
-"""``companion sim``: fly one simulated run in-process and plot it.
+"""``companion sim``: a simulated flight, in real time or in-process.
 
-The run logic lives in companion/sim/runner.py (:func:`run_once`); this is only the command.
-``--in-process`` names this mode explicitly, so the command can later grow a MAVLink mode
-(simulated PX4 + the real app) without changing what ``companion sim --in-process`` does.
+Default: the simulated PX4 in its own process (MAVLink over UDP on 127.0.0.1), the synthetic
+camera and the flight app together in real time, exactly as on a drone: arm, take off, acquire,
+engage, pass, recover, land. A live status line on stderr; the flight log and its plot at the end
+(companion/app/main.py :func:`run_sim`). The exit code is the flight's outcome (0 = passed, landed).
+
+``--in-process``: the fast in-process simulator (companion/sim/runner.py :func:`run_once`):
+dynamics + camera + controller in one loop, faster than real time, no autopilot.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from companion.app.main import add_sim_arguments, run_sim
 from companion.config import add_config_arguments, config_from_args
 from companion.sim.gates import MOTIONS
 from companion.sim.runner import CAMERAS, CONTROLLERS, RunSpec, run_once
@@ -21,12 +26,14 @@ from companion.sim.runner import CAMERAS, CONTROLLERS, RunSpec, run_once
 def add_in_process_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--in-process", action="store_true",
                    help="fly the in-process simulator (dynamics + geometric camera + controller in one loop)")
-    p.add_argument("--motion", choices=MOTIONS, default="planar", help="gate motion (default planar)")
+    p.add_argument("--motion", choices=MOTIONS, default=None,
+                   help="gate motion (default: planar in-process, app.synthetic.motion otherwise)")
     p.add_argument("--seed", type=int, default=0, help="run seed (initial condition, noise)")
     p.add_argument("--controller", choices=CONTROLLERS, default="pn",
                    help="pn (ours), pn_true_vrel (true closing speed), baseline (Bhattacharya et al.)")
-    p.add_argument("--camera", choices=CAMERAS, default="geometric",
-                   help="geometric: projected box (paper V-A); rendered: drawn frames through the real detector")
+    p.add_argument("--camera", choices=CAMERAS, default=None,
+                   help="geometric: projected box (paper V-A); rendered: drawn frames through the real detector "
+                        "(default: geometric in-process, app.synthetic.render otherwise)")
     p.add_argument("--plot", type=Path, default=Path("sim_run.png"), metavar="PNG",
                    help="plot file (default sim_run.png)")
     p.add_argument("--no-plot", action="store_true")
@@ -37,13 +44,25 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("sim", help="fly one simulated run and plot it",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_in_process_arguments(p)
+    add_sim_arguments(p)
     add_config_arguments(p)
-    p.set_defaults(func=cmd_in_process)
+    p.set_defaults(func=cmd_sim)
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    if args.in_process:
+        return cmd_in_process(args)
+    if args.camera is not None:
+        args.overrides = [*args.overrides,
+                          f"app.synthetic.render={'image' if args.camera == 'rendered' else 'geometric'}"]
+    return run_sim(args)
 
 
 def cmd_in_process(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     radii = list(cfg.sim.scenario.gate_radii)
+    args.motion = args.motion or "planar"
+    args.camera = args.camera or "geometric"
     try:
         res = run_once(cfg, RunSpec(args.motion, args.seed, args.controller, camera=args.camera),
                        record=not args.no_plot)
