@@ -11,7 +11,7 @@ import math
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, model_validator
@@ -121,6 +121,11 @@ class GuidanceConfig(Section):
     k_pn: Number = Field(2.10, gt=0.0, le=20.0, description="navigation constant k_PN")
     gamma_bar: Deg = Field(21.05, gt=0.5, lt=89.0, description="bound on LOS-to-optical-axis angle, deg")
     v_rel_bar: MetersPerSecond = Field(15.0, gt=0.0, le=200.0, description="over-estimate of the relative speed, m/s")
+    fov: Literal["exact", "paper"] = Field(
+        "exact",
+        description="exact: bound the real angle between LOS and optical axis; paper: the paper's "
+        "conservative cos(phi) cos(theta) >= cos(gamma_bar), which caps sideways acceleration at g tan(gamma_bar)",
+    )
 
 
 class LosFilterConfig(Section):
@@ -131,6 +136,9 @@ class LosFilterConfig(Section):
         3.0, gt=0.0, le=100.0, description="LOS rates above this (rad/s) are a jump: frame rejected"
     )
     max_dt: Seconds = Field(0.5, gt=0.0, le=10.0, description="s; a gap longer than this restarts the filter")
+    rate_cutoff: Hertz = Field(
+        0.0, ge=0.0, le=1000.0, description="low-pass on the LOS rate vector (lambda_dot n), Hz; 0 = off"
+    )
 
 
 class Config(Section):

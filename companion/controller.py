@@ -52,6 +52,7 @@ class ControllerParams:
     los_cutoff_hz: float
     max_los_rate: float  # rad/s; faster apparent LOS motion is a jump (tracker switched targets)
     max_dt: float  # s; a longer gap restarts the LOS filter
+    rate_cutoff_hz: float = 0.0  # low-pass on the LOS rate vector; 0 = off
     jump_reacquire_frames: int = 3  # consecutive "jumps" that agree are a real re-acquisition
 
 
@@ -76,6 +77,7 @@ class PNController:
             gamma_bar=math.radians(cfg.guidance.gamma_bar) - misalign,
             f_max=cfg.airframe.f_max,
             f_min=cfg.airframe.f_min,
+            fov=cfg.guidance.fov,
         )
         cp = ControllerParams(
             guidance=gp,
@@ -84,6 +86,7 @@ class PNController:
             los_cutoff_hz=cfg.los_filter.cutoff,
             max_los_rate=cfg.los_filter.max_rate,
             max_dt=cfg.los_filter.max_dt,
+            rate_cutoff_hz=cfg.los_filter.rate_cutoff,
         )
         return cls(cp, camera)
 
@@ -102,6 +105,7 @@ class PNController:
         self._t_prev: float | None = None
         self._t_last: float | None = None  # time of the last step, used or not
         self._jumps = 0
+        self._w: np.ndarray | None = None  # filtered LOS rate vector lambda_dot * n (ENU)
 
     @property
     def has_los(self) -> bool:
@@ -151,6 +155,7 @@ class PNController:
             self._jumps = 0
             self._filter.reset()
             self._l_prev = None
+            self._w = None
             return None
         return f"LOS jump ({math.degrees(angle):.1f} deg in {dt * 1e3:.0f} ms)"
 
@@ -158,12 +163,28 @@ class PNController:
         l_f = self._filter.update(t, l_enu)
         dt = t - self._t_prev if self._t_prev is not None else 0.0
         rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
+        lambda_dot, n = self._smooth_rate(l_f, rate.lambda_dot * rate.n, dt)
         gp = self.p.guidance
-        a_n = guidance.pn_demand(rate.lambda_dot, rate.n, gp.k_pn, gp.v_rel_bar)
+        a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, gp.v_rel_bar)
         sol = guidance.solve(l_f, a_n, gp, y_ref=self._body_y_enu(R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, rate.lambda_dot, a_n, sol.demand_scale, sol.f_th, None)
+        return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, None)
+
+    def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
+        """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies
+        pixel noise, and k_PN v_rel_bar (~30 m/s) turns it into thrust jitter. Kept normal to the LOS."""
+        if self.p.rate_cutoff_hz <= 0.0:
+            lam = math.sqrt(float(w @ w))
+            return lam, (w / lam if lam > 0.0 else w)
+        if self._w is None or not (0.0 < dt <= self.p.max_dt):
+            self._w = w.copy()
+        else:
+            beta = 1.0 - math.exp(-2.0 * math.pi * self.p.rate_cutoff_hz * dt)
+            self._w = self._w + beta * (w - self._w)
+            self._w -= float(self._w @ l_f) * l_f
+        lam = math.sqrt(float(self._w @ self._w))
+        return lam, (self._w / lam if lam > 0.0 else np.zeros(3))
 
     def _no_box(self, t: float, R_ned_frd: np.ndarray, rejected: str) -> ControlOutput:
         zero = np.zeros(3)

@@ -18,14 +18,23 @@ R_B^W = R_PN^W R_y(phi) R_x(theta)      :func:`solve` -> ``R_W_B``
 MAVSDK setpoint (NED/FRD, deg, 0..1)    :func:`to_setpoint`
 =====================================  ==========================================
 
+Field-of-view bound. With ``R_B^PN = R_y(phi) R_x(theta)`` the optical axis is ``R_y(phi) e_x``:
+the real angle between it and the LOS is ``phi`` alone (roll turns the vehicle about the LOS).
+The paper bounds ``cos(phi) cos(theta) >= cos(gamma_bar)``, which is stricter than needed and
+caps the acceleration normal to the LOS at ``g tan(gamma_bar)`` sideways. ``fov="exact"`` (the
+default) bounds the real angle, ``phi <= gamma_bar``, i.e. ``f^2 - t_y^2 <= (t_z / cos gamma_bar)^2``,
+so the optimum is ``f* = min(f_max, hypot(t_y, t_z / cos(gamma_bar)))``. ``fov="paper"`` keeps the
+paper's ``f* = min(f_max, t_z / cos(gamma_bar))`` to reproduce its derivation.
+
 Saturation rule (the paper leaves infeasible demands open). With ``t = s a_n^PN - g^PN``
 restricted to the PN y-z plane (the thrust components normal to the LOS that the demand
-fixes), a demand is feasible when some thrust ``f`` satisfies
-``max(f_min, |t|) <= f <= min(f_max, t_z / cos(gamma_bar))``, i.e. when
-(a) ``t_z >= f_min cos(gamma_bar)`` (thrust can point up enough and stay >= f_min within the FOV),
-(b) ``|t| <= f_max`` and (c) ``|t_y| <= t_z tan(gamma_bar)`` (the FOV cone). The feasible
-``t`` form a convex set, so the feasible scales ``s`` form an interval; we take the largest
-``s`` in [0, 1]: the normal demand keeps its direction and is scaled down just enough.
+fixes), a demand is feasible when the largest thrust the FOV bound allows reaches f_min, (a), when
+``|t| <= f_max``, (b), and for ``fov="paper"`` when ``|t_y| <= t_z tan(gamma_bar)``, (c). For "paper",
+(a) is ``t_z >= f_min cos(gamma_bar)``; all three are convex in ``t``, so the feasible scales ``s``
+form an interval. For "exact", (a) is ``t_z > 0`` and ``t_y^2 + (t_z / cos gamma_bar)^2 >= f_min^2``,
+the outside of an ellipse: along ``t(s)`` the feasible scales are ``[0, r1]`` or ``[r2, ...]``.
+Either way we take the largest feasible ``s`` in [0, 1]: the normal demand keeps its direction and
+is scaled down just enough.
 If even ``s = 0`` is infeasible (LOS steeper than the FOV bound allows with f_min, or an
 airframe too weak to hold the LOS), the vehicle points its optical axis along the LOS
 (phi = theta = 0) with ``f = clip(t_z, f_min, f_max)``: the FOV bound holds exactly and
@@ -58,8 +67,11 @@ class GuidanceParams:
     gamma_bar: float
     f_max: float
     f_min: float
+    fov: str = "exact"  # "exact": bound the real LOS-to-optical-axis angle; "paper": cos(phi) cos(theta)
 
     def __post_init__(self) -> None:
+        if self.fov not in ("exact", "paper"):
+            raise ValueError(f"fov must be 'exact' or 'paper', got {self.fov!r}")
         if not (0.0 < self.gamma_bar < math.pi / 2):
             raise ValueError(f"gamma_bar must be in (0, pi/2) rad, got {self.gamma_bar}")
         if not (0.0 < self.f_min < self.f_max):
@@ -163,28 +175,40 @@ def demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidancePara
 
     See the module docstring for the constraints (a), (b), (c).
     """
-    cg, tg = math.cos(p.gamma_bar), math.tan(p.gamma_bar)
-    tz_min = p.f_min * cg
+    cg = math.cos(p.gamma_bar)
     # Linear constraints c0 + c1 s >= 0, with t_y = s a_y - g_y and t_z = s a_z - g_z.
-    lin = (
-        (-g_z - tz_min, a_z),  # (a)
-        (-g_z * tg + g_y, a_z * tg - a_y),  # (c) t_z tan - t_y >= 0
-        (-g_z * tg - g_y, a_z * tg + a_y),  # (c) t_z tan + t_y >= 0
-    )
+    if p.fov == "paper":
+        tg = math.tan(p.gamma_bar)
+        lin: tuple[tuple[float, float], ...] = (
+            (-g_z - p.f_min * cg, a_z),  # (a) t_z >= f_min cos(gamma_bar)
+            (-g_z * tg + g_y, a_z * tg - a_y),  # (c) t_z tan - t_y >= 0
+            (-g_z * tg - g_y, a_z * tg + a_y),  # (c) t_z tan + t_y >= 0
+        )
+    else:
+        lin = ((-g_z - 1e-9 * G, a_z),)  # (a) t_z > 0: the optical axis can be within 90 deg of the LOS
     # (b) |s A - G|^2 <= f_max^2  <=>  qa s^2 + qb s + qc <= 0
     qa = a_y * a_y + a_z * a_z
     qb = -2.0 * (a_y * g_y + a_z * g_z)
     qc = g_y * g_y + g_z * g_z - p.f_max * p.f_max
+    # (a), exact: h(s) = t_y^2 + (t_z / cos)^2 - f_min^2 >= 0, a convex quadratic in s
+    ha = a_y * a_y + (a_z / cg) ** 2
+    hb = -2.0 * (a_y * g_y + a_z * g_z / (cg * cg))
+    hc = g_y * g_y + (g_z / cg) ** 2 - p.f_min * p.f_min
     tol = 1e-12 * (1.0 + p.f_max * p.f_max)
     if any(c0 < -1e-12 * (1.0 + abs(c0)) for c0, _ in lin) or qc > tol:
+        return None
+    if p.fov == "exact" and hc < -tol:
         return None
     s = 1.0
     for c0, c1 in lin:
         s = min(s, _max_scale_linear(max(c0, 0.0), c1))
     if qa > _EPS:
-        disc = max(qb * qb - 4.0 * qa * qc, 0.0)
-        s = min(s, (-qb + math.sqrt(disc)) / (2.0 * qa))
-    return max(s, 0.0)
+        s = min(s, (-qb + math.sqrt(max(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa))
+    s = max(s, 0.0)
+    if p.fov == "exact" and ha > _EPS and (ha * s + hb) * s + hc < 0.0:
+        # s fell between the roots of h: the largest feasible scale is the lower root.
+        s = max(0.0, (-hb - math.sqrt(max(hb * hb - 4.0 * ha * hc, 0.0))) / (2.0 * ha))
+    return s
 
 
 def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
@@ -196,8 +220,9 @@ def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
 def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
     """Closed-form optimum of eq:meth_optimization_problem_simplified, with saturation.
 
-    ``f_th* = min(f_max, (n_z a_n - g_z^PN) / cos(gamma_bar))``, ``phi* = phi(f_th*)``,
-    ``theta* = theta(f_th*)``, attitude ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``.
+    ``f_th* = min(f_max, hypot(n_y a_n - g_y^PN, (n_z a_n - g_z^PN) / cos(gamma_bar)))`` for the exact
+    FOV bound, ``min(f_max, (n_z a_n - g_z^PN) / cos(gamma_bar))`` for the paper's;
+    ``phi* = phi(f_th*)``, ``theta* = theta(f_th*)``, attitude ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``.
     ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world frame).
     """
     R_W_PN = pn_frame(l, y_ref)
@@ -210,8 +235,10 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
         f = min(p.f_max, max(p.f_min, -g_z))
         return ThrustAttitude(f, 0.0, 0.0, R_W_PN, 0.0, True)
     t_y, t_z = s * a_y - g_y, s * a_z - g_z
-    f = min(p.f_max, t_z / math.cos(p.gamma_bar))
-    f = max(f, p.f_min)  # only rounding can put it below (constraint (a))
+    f_fov = t_z / math.cos(p.gamma_bar)  # largest thrust the FOV bound allows
+    if p.fov == "exact":
+        f_fov = math.hypot(t_y, f_fov)
+    f = max(min(p.f_max, f_fov), p.f_min)  # only rounding can put it below f_min (constraint (a))
     theta, phi = roll_pitch(f, t_y, t_z)
     return ThrustAttitude(f, phi, theta, R_W_PN @ _R_y_R_x(phi, theta), s, False)
 

@@ -49,6 +49,7 @@ def params(draw, gamma_deg=(5.0, 30.0)) -> GuidanceParams:
         gamma_bar=math.radians(draw(st.floats(*gamma_deg))),
         f_max=G * min(tw, 1.0 / hover),
         f_min=G * thrust_min / hover,
+        fov=draw(st.sampled_from(["exact", "paper"])),
     )
 
 
@@ -179,13 +180,22 @@ def test_pn_frame_vertical_los_uses_reference() -> None:
 # --- the closed form against a numerical optimisation of eq:meth_optimization_problem_simplified --------
 
 
+def fov_margin(phi: float, theta: float, p: GuidanceParams) -> float:
+    """>= 0 inside the field-of-view set Q_fov. Exact: the real angle between the optical axis
+    R_y(phi) R_x(theta) e_x and the LOS e_x, computed from the rotation; paper: cos(phi) cos(theta)."""
+    if p.fov == "paper":
+        return math.cos(phi) * math.cos(theta) - math.cos(p.gamma_bar)
+    axis = Rotation.from_euler("YX", [phi, theta]).apply([1.0, 0.0, 0.0])  # intrinsic: R_y(phi) R_x(theta)
+    return float(axis[0]) - math.cos(p.gamma_bar)
+
+
 def numeric_optimum(a_y: float, a_z: float, g_z: float, p: GuidanceParams) -> tuple[float, float, float, float]:
     """maximise f sin(phi) cos(theta) s.t. [n_y a_n, n_z a_n] = [-f sin theta, f cos phi cos theta + g_z],
-    0 <= f <= f_max, cos(phi) cos(theta) >= cos(gamma_bar) — solved by SLSQP from several starts."""
+    0 <= f <= f_max, orientation in Q_fov — solved by SLSQP from several starts."""
     cons = [
         {"type": "eq", "fun": lambda x: a_y + x[0] * math.sin(x[2])},
         {"type": "eq", "fun": lambda x: a_z - (x[0] * math.cos(x[1]) * math.cos(x[2]) + g_z)},
-        {"type": "ineq", "fun": lambda x: math.cos(x[1]) * math.cos(x[2]) - math.cos(p.gamma_bar)},
+        {"type": "ineq", "fun": lambda x: fov_margin(x[1], x[2], p)},
     ]
     best = None
     for f0 in (0.3, 0.6, 0.95):
@@ -241,13 +251,11 @@ def test_saturation_scale_is_the_largest_feasible(data) -> None:
     s = sol.demand_scale * 1.02
     a_y, a_z, g_z = s * float(R_pn[:, 1] @ a_n), s * float(R_pn[:, 2] @ a_n), float(R_pn[:, 2] @ g_W)
     # Feasibility as a least-violation problem over (f, phi, theta).
-    cg = math.cos(p.gamma_bar)
 
     def violation(x):
         f, phi, theta = x
         eq = (a_y + f * math.sin(theta)) ** 2 + (a_z - f * math.cos(phi) * math.cos(theta) - g_z) ** 2
-        fov = max(0.0, cg - math.cos(phi) * math.cos(theta)) ** 2
-        return eq + fov
+        return eq + max(0.0, -fov_margin(phi, theta, p)) ** 2
 
     best = min(
         minimize(violation, [f0 * p.f_max, phi0, th0], method="L-BFGS-B",
@@ -260,9 +268,10 @@ def test_saturation_scale_is_the_largest_feasible(data) -> None:
 # --- known geometries, computed by hand ----------------------------------------------------------------
 
 
-@pytest.fixture
-def x500() -> GuidanceParams:
-    return GuidanceParams(k_pn=2.1, v_rel_bar=15.0, gamma_bar=math.radians(21.05), f_max=2 * G, f_min=0.2 * G)
+@pytest.fixture(params=["exact", "paper"])
+def x500(request) -> GuidanceParams:
+    return GuidanceParams(k_pn=2.1, v_rel_bar=15.0, gamma_bar=math.radians(21.05), f_max=2 * G, f_min=0.2 * G,
+                          fov=request.param)
 
 
 def test_gate_straight_ahead_level(x500) -> None:
@@ -322,3 +331,19 @@ def test_vertical_los_falls_back_without_nan(x500) -> None:
         assert sol.fallback and sol.demand_scale == 0.0
         assert np.allclose(sol.R_W_B[:, 0], l)  # optical axis on the LOS
         assert sol.f_th == pytest.approx(x500.f_min)
+
+
+def test_sideways_demand_exact_fov_keeps_it_paper_fov_caps_it() -> None:
+    """6 m/s^2 sideways on a level LOS: the exact bound meets it and still accelerates towards the gate;
+    the paper's bound caps sideways acceleration at g tan(gamma_bar) = 3.77 m/s^2."""
+    gb = math.radians(21.05)
+    l = np.array([0.0, 1.0, 0.0])  # noqa: E741
+    a_n = np.array([6.0, 0.0, 0.0])  # east = right
+    exact = guidance.solve(l, a_n, GuidanceParams(2.1, 15.0, gb, 2 * G, 0.2 * G, "exact"))
+    paper = guidance.solve(l, a_n, GuidanceParams(2.1, 15.0, gb, 2 * G, 0.2 * G, "paper"))
+    acc_e, acc_p = achieved_acc(exact.R_W_B, exact.f_th), achieved_acc(paper.R_W_B, paper.f_th)
+    assert exact.demand_scale == 1.0 and acc_e[0] == pytest.approx(6.0)
+    assert acc_e[1] == pytest.approx(G * math.tan(gb))  # along the LOS: with phi = gamma_bar, as with no demand
+    assert angle(exact.R_W_B[:, 0], l) == pytest.approx(gb)
+    assert paper.demand_scale < 0.7 and acc_p[0] == pytest.approx(G * math.tan(gb))
+    assert acc_p[1] == pytest.approx(0.0, abs=1e-9)  # nothing left for the way to the gate
