@@ -62,8 +62,11 @@ class FaultInjector:
     def apply(self, t: float, box: BoundingBox | None) -> BoundingBox | None:
         if not self.active(t):
             return box
-        if self.kind == "nan_box":
-            return BoundingBox(math.nan, math.nan, math.nan, math.nan, 1.0, t)
+        if self.kind == "nan_box":  # a broken detector: NaN, negative size, centre off the image, in turn
+            self.jumped += 1
+            return (BoundingBox(math.nan, math.nan, math.nan, math.nan, 1.0, t),
+                    BoundingBox(320.0, 240.0, -40.0, 30.0, 1.0, t),
+                    BoundingBox(5000.0, -80.0, 40.0, 30.0, 1.0, t))[self.jumped % 3]
         if self.kind == "lose_target":
             return None
         if self.kind == "exception":

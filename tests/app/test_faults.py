@@ -122,6 +122,7 @@ def test_perception_faults_hand_over_to_hold(sim, tmp_path, fault, reason, text)
     if fault == "nan_box":
         rej = [r for r in f["los"]["rejected"] if isinstance(r, str) and r.startswith("invalid box")]
         assert len(rej) >= 10
+        assert any("nan" in r for r in rej) and any("-40" in r for r in rej) and any("5000" in r for r in rej)
         assert (f["detections"]["valid"] == 0).sum() >= len(rej)
     if fault == "stall":
         # The camera stopped: the last detection is >= stall timeout before the hand-over.
