@@ -54,6 +54,10 @@ class PipelinePerception:
             return None
         return self.pipeline.process(frame.image, frame.t)
 
+    def reset(self) -> None:
+        """Forget the track (a gate was passed: the next one is a new target, not a jump)."""
+        self.pipeline.reset()
+
 
 class CameraFailed(RuntimeError):
     """The camera ended or reported an error (one line: which source, what)."""

@@ -341,6 +341,9 @@ class FlightApp:
         thrust = min(1.0, self.ctrl.p.hover_thrust * self.cfg.app.recover_thrust_scale)
         self._recover_sp = hover_setpoint(yaw, thrust)
         self._recover_start = self.clock()
+        reset = getattr(self.perception, "reset", None)
+        if reset is not None:
+            reset()  # the tracker must not hold on to (or coast) the gate we just passed
         self.sm.go(State.RECOVER, why)
 
     async def _land_normally(self, reason: Reason, why: str, via: State) -> None:

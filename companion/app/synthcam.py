@@ -87,6 +87,11 @@ class InjectedPerception:
     def process(self, frame: Frame) -> BoundingBox | None:
         return self.faults.apply(frame.t, self.inner.process(frame))
 
+    def reset(self) -> None:
+        reset = getattr(self.inner, "reset", None)
+        if reset is not None:
+            reset()
+
 
 class SyntheticScene:
     """Virtual gates in world ENU, anchored at the vehicle pose of the first frame."""

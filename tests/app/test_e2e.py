@@ -132,3 +132,23 @@ def test_pilot_start_waits_for_the_pilots_hover(sim, tmp_path):
     ev = [e for _, e in sim.events]
     assert ev.count("arm") == 1 and any(e.startswith("mode:OFFBOARD") for e in ev)
     assert len(gate_crossings(f)) == 1
+
+
+def _detector_missing() -> str | None:
+    from companion.app.main import detector_available
+    from companion.config import load_config
+
+    return detector_available(load_config())
+
+
+@pytest.mark.skipif(_detector_missing() is not None, reason="the shipped gate detector (ONNX) is not available")
+def test_rendered_frames_through_the_detector_end_to_end(sim, tmp_path):
+    """The image path: rendered frames -> detector pipeline -> controller, through mavsdk, to a pass."""
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.synthetic.render=image",
+                      "app.synthetic.motion=linear_slow")
+    reason, folder, summary = run_flight(cfg)
+    f = read_flight(folder)
+    assert reason is Reason.OK, summary
+    assert "PASS" in f.state_path() and f.state_path()[-1] == "SAFE_LANDED"
+    assert len(gate_crossings(f)) == 1
+    assert summary["frame_to_setpoint_ms"]["n"] > 50
