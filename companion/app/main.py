@@ -29,10 +29,13 @@ if TYPE_CHECKING:
 
 
 def register(subparsers: Any) -> None:
+    from companion.app.states import Reason
     from companion.config import add_config_arguments
 
+    codes = "\n".join(f"  {r.value:3d}  {r.name}" for r in Reason)
     p = subparsers.add_parser("fly", help="fly through gates: connect, take off, engage, pass, land (logs the flight)",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                              epilog=f"exit codes (the flight's outcome):\n{codes}")
     add_config_arguments(p)
     p.add_argument("--url", help="mavsdk connection URL (overrides link.url)")
     p.add_argument("--synthetic", action="store_true",
