@@ -7,11 +7,12 @@ switch commands from stdin, stops on SIGTERM/SIGINT or ``quit``).
 
 Public API (names are stable; the flight app and its tests rely on them)::
 
-    SimPX4(config=None, *, port=0, params=None, px4_params=None, initial_state=None,
+    SimPX4(config=None, *, port=0, remote_port=None, params=None, px4_params=None, initial_state=None,
            initial_mode="HOLD", heartbeat_hz=1.0, telemetry_hz=50.0, noise=True)
     (an initial_state in the air starts armed, holding in initial_mode: HOLD or POSCTL)
     .start() / .stop() / context manager
-    .port, .url_for_mavsdk ("udpout://127.0.0.1:PORT")
+    .port, .url_for_mavsdk ("udpout://127.0.0.1:PORT"; with remote_port=N mavsdk may also use
+    "udpin://127.0.0.1:N", as with PX4 SITL on 14540)
     .truth() -> QuadState copy (ground truth, ENU/FLU)
     .mode (str: POSCTL, HOLD, TAKEOFF, LAND, OFFBOARD), .armed, .landed, .time (sim s)
     .events -> list[(t, what)] copy; .wait_event(prefix, timeout, since=-inf) / .wait_for(pred, timeout)
@@ -192,6 +193,7 @@ class SimPX4:
         config: Any = None,
         *,
         port: int = 0,
+        remote_port: int | None = None,
         params: QuadParams | None = None,
         px4_params: Mapping[str, float] | None = None,
         initial_state: QuadState | None = None,
@@ -223,6 +225,8 @@ class SimPX4:
             self._params[name] = (float(value), self._params[name][1])
 
         self._port_req = int(port)
+        # Like PX4 SITL, which sends to 127.0.0.1:14540: lets a mavsdk that listens (udpin://) find it.
+        self._remote = None if remote_port is None else ("127.0.0.1", int(remote_port))
         self._heartbeat_dt = 1.0 / heartbeat_hz
         self._default_rates = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat_dt,
@@ -292,6 +296,8 @@ class SimPX4:
         sock.setblocking(False)
         self._sock = sock
         self._stop.clear()
+        if self._remote is not None:
+            self._peers[self._remote] = math.inf  # always sent to, never forgotten
         self._thread = threading.Thread(target=self._run, name=f"SimPX4:{self.port}", daemon=True)
         self._thread.start()
         return self
@@ -809,7 +815,7 @@ class SimPX4:
             return
         # Forget clients silent for 5 s (MAVSDK sends a heartbeat every second): no sends to dead ports.
         for addr, t_heard in list(self._peers.items()):
-            if self._t - t_heard > 5.0:
+            if self._t - t_heard > 5.0 and addr != self._remote:
                 del self._peers[addr]
         t = self._t
         due = [mid for mid, iv in self._rates.items() if iv > 0 and t >= self._next_send.get(mid, 0.0)]
@@ -925,6 +931,8 @@ def main(argv: list[str] | None = None) -> int:
         description="Simulated PX4 on 127.0.0.1 (MAVLink 2/UDP). Prints 'PORT <n>'; " + _SWITCH_HELP,
     )
     ap.add_argument("--port", type=int, default=0, help="UDP port on 127.0.0.1 (0: a free one)")
+    ap.add_argument("--remote-port", type=int, default=None, metavar="PORT",
+                    help="also send to 127.0.0.1:PORT, for mavsdk listening with udpin:// (PX4 SITL uses 14540)")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="PX4 parameter, e.g. --param MPC_THR_HOVER=0.42 (repeatable)")
     ap.add_argument("--no-noise", action="store_true", help="perfect sensors")
@@ -939,7 +947,8 @@ def main(argv: list[str] | None = None) -> int:
                 px4_params[name.strip()] = float(value)
             except ValueError:
                 raise ConfigError(f"--param {item!r}: expected NAME=NUMBER") from None
-        sim = SimPX4(cfg, port=args.port, px4_params=px4_params, noise=not args.no_noise)
+        sim = SimPX4(cfg, port=args.port, remote_port=args.remote_port, px4_params=px4_params,
+                     noise=not args.no_noise)
     except (ConfigError, ValueError) as e:
         print(f"companion.sim.px4: {e}", file=sys.stderr)
         return 2
