@@ -249,6 +249,21 @@ def test_airborne_start_holds_and_streams_pose_for_the_synthetic_camera(cfg: Con
 
         assert m.lat * 1e-7 == pytest.approx(HOME_LAT + math.degrees(s.p[1] / 6_378_137.0), abs=1e-6)
         assert m.alt * 1e-3 == pytest.approx(HOME_ALT + s.p[2], abs=0.1)
+        # ATTITUDE_QUATERNION is body FRD -> NED, scalar first: its body x / body down (FRD z) must be the
+        # truth's body x / minus body z (FLU), re-expressed by hand from ENU to NED.
+        from scipy.spatial.transform import Rotation
+
+        gcs.drain()
+        aq = gcs.recv(lambda m: m.get_type() == "ATTITUDE_QUATERNION", 1.0)
+        s = sim.truth()
+        R_att = Rotation.from_quat([aq.q2, aq.q3, aq.q4, aq.q1]).as_matrix()
+        R_true = Rotation.from_quat(s.q).as_matrix()
+
+        def enu_to_ned(v: np.ndarray) -> list[float]:
+            return [v[1], v[0], -v[2]]
+
+        assert R_att[:, 0] == pytest.approx(enu_to_ned(R_true[:, 0]), abs=2e-3)
+        assert R_att[:, 2] == pytest.approx(enu_to_ned(-R_true[:, 2]), abs=2e-3)
         gcs.close()
 
 
