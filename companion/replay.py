@@ -302,7 +302,8 @@ def _cmd(args: argparse.Namespace) -> int:
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "replay", help="run detector + tracker + LOS + controller over a recorded video",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        description="Run detector + tracker + LOS + controller over a recorded video, as the app would have; "
+        "write an annotated video (box, LOS, commanded attitude and thrust), a per-frame CSV and plots.",
     )
     p.add_argument("video", help="recorded video file (frame size must match camera.width/height)")
     p.add_argument("--log", default=None, metavar="FLIGHT_LOG",

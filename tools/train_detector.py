@@ -2,8 +2,9 @@
 """Train the shipped gate detector on rendered frames and export it as a YOLOv8-layout ONNX file.
 
 Dev-only: needs CPU PyTorch (``pip install torch==2.13.0``), never a runtime dependency.
-Reproducible from ``--seed`` (rendering, init and batch order all come from it; the wall-clock
-budget ``--minutes`` decides how many steps run, so set ``--steps`` for a bit-exact rerun).
+Reproducible from ``--seed`` and ``--steps`` (rendering, init, batch order and the learning-rate
+schedule all follow from them); ``--minutes`` instead times the first steps and fixes the step
+count from the budget (printed, and recorded in the JSON, for a rerun with ``--steps``).
 
     .venv/bin/python tools/train_detector.py --minutes 30 --seed 1
     .venv/bin/python tools/train_detector.py --eval-only      # re-measure the shipped model
@@ -32,6 +33,7 @@ from perception.render import HELDOUT_STYLE, TRAIN_STYLE, PinholeCamera, random_
 
 INPUT = 320
 STRIDES = (8, 16, 32)
+PROBE = 40  # steps timed to turn --minutes into a step count
 # Box sizes (max side, input px) each level is responsible for; overlapping so borderline sizes get both.
 LEVEL_RANGES = ((0.0, 56.0), (36.0, 140.0), (100.0, 1e9))
 
@@ -185,14 +187,19 @@ def train(args: argparse.Namespace) -> None:
     # Replay pool: rendering is the bottleneck, so each rendered frame is seen a few times (with flips).
     pool: list[tuple[np.ndarray, np.ndarray]] = [sample(rng, cam) for _ in range(args.pool)]
     t0 = time.monotonic()
-    budget = args.minutes * 60.0
+    # The schedule is in steps, so a run is reproducible from (--seed, --steps). With only --minutes, the
+    # step count is fixed from the speed of the first PROBE steps and printed/recorded for reruns.
+    total = args.steps
     step = 0
     ema_loss = None
     while True:
         elapsed = time.monotonic() - t0
-        if (args.steps and step >= args.steps) or (not args.steps and elapsed >= budget):
+        if not total and step == PROBE:
+            total = max(PROBE + 1, int(args.minutes * 60.0 / (elapsed / PROBE)))
+            print(f"budget {args.minutes} min -> {total} steps (rerun with --steps {total})", flush=True)
+        if (total and step >= total) or (args.stop_at and step >= args.stop_at):
             break
-        frac = step / args.steps if args.steps else elapsed / budget
+        frac = step / total if total else 0.0
         lr = args.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
@@ -206,6 +213,12 @@ def train(args: argparse.Namespace) -> None:
                 im = im[:, ::-1]
                 bx = bx.copy()
                 bx[:, [0, 2]] = INPUT - bx[:, [2, 0]]
+            if rng.random() < 0.5:
+                # Desaturate towards grey (no new hues): shape cues over colour, so gate colours never
+                # seen in training (the held-out style) are still gates.
+                a = rng.uniform(0.0, 1.0)
+                grey = cv2.cvtColor(cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+                im = cv2.addWeighted(np.ascontiguousarray(im), a, grey, 1.0 - a, 0.0)
             imgs.append(im)
             boxes.append(bx)
         x = torch.from_numpy(np.stack(imgs)[..., ::-1].copy()).permute(0, 3, 1, 2).float() / 255.0
@@ -241,19 +254,31 @@ def train(args: argparse.Namespace) -> None:
         if step % 500 == 0:
             torch.save(model.state_dict(), args.out / "gate_detector.pt")
     torch.save(model.state_dict(), args.out / "gate_detector.pt")
+    write_model(model, args, total or step, step, round((time.monotonic() - t0) / 60, 1))
+
+
+def write_model(model, args: argparse.Namespace, total: int, step: int, minutes: float | None) -> None:
+    """ONNX + JSON metadata (everything needed to reproduce: seed, schedule length, stop step)."""
+    import torch
+
     export(model, args.out / "gate_detector.onnx")
     meta = {
         "classes": ["gate"],
         "input_size": [INPUT, INPUT],
         "input": "RGB float 0..1, NCHW, letterboxed with pad value 114",
         "output": "[1, 4 + nc, N]: cx, cy, w, h (input pixels), class probabilities",
-        "training": {"seed": args.seed, "steps": step, "minutes": round((time.monotonic() - t0) / 60, 1),
-                     "batch": args.batch, "params": n_params,
-                     "resumed_from": str(args.resume) if args.resume else None, "style": TRAIN_STYLE.name,
-                     "torch": torch.__version__},
+        "training": {
+            "command": f"tools/train_detector.py --seed {args.seed} --steps {total}"
+                       + (f" --stop-at {step}" if step < total else ""),
+            "seed": args.seed, "schedule_steps": total, "steps": step, "minutes": minutes,
+            "batch": args.batch, "pool": args.pool, "fresh": args.fresh, "lr": args.lr,
+            "params": sum(p.numel() for p in model.parameters()),
+            "resumed_from": str(args.resume) if args.resume else None, "style": TRAIN_STYLE.name,
+            "torch": torch.__version__,
+        },
     }
     (args.out / "gate_detector.json").write_text(json.dumps(meta, indent=2) + "\n")
-    print(f"exported after {step} steps", flush=True)
+    print(f"exported after {step} of {total} steps", flush=True)
 
 
 def export(model, path: Path) -> None:
@@ -328,9 +353,18 @@ def main() -> int:
     p.add_argument("--eval-frames", type=int, default=400)
     p.add_argument("--eval-only", action="store_true")
     p.add_argument("--resume", type=Path, default=None, help="start from this state dict (.pt)")
+    p.add_argument("--stop-at", type=int, default=0, help="stop after this many steps of the --steps schedule")
+    p.add_argument("--export-checkpoint", type=Path, default=None,
+                   help="export this .pt (from a run given by --seed/--steps/--stop-at) instead of training")
     args = p.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    if not args.eval_only:
+    if args.export_checkpoint:  # a checkpoint of a run (--seed, --steps, --stop-at say which): export only
+        import torch
+
+        model = build_model()
+        model.load_state_dict(torch.load(args.export_checkpoint))
+        write_model(model, args, args.steps, args.stop_at or args.steps, None)
+    elif not args.eval_only:
         train(args)
     onnx_path = args.out / "gate_detector.onnx"
     meta_path = args.out / "gate_detector.json"
