@@ -29,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from perception.detector import letterbox  # noqa: E402  (the detector's own: train and inference agree)
 from perception.render import HELDOUT_STYLE, TRAIN_STYLE, PinholeCamera, random_scene  # noqa: E402
 
 INPUT = 320
@@ -36,17 +37,6 @@ STRIDES = (8, 16, 32)
 PROBE = 40  # steps timed to turn --minutes into a step count
 # Box sizes (max side, input px) each level is responsible for; overlapping so borderline sizes get both.
 LEVEL_RANGES = ((0.0, 56.0), (36.0, 140.0), (100.0, 1e9))
-
-
-def letterbox(img: np.ndarray, size: int = INPUT) -> tuple[np.ndarray, float, float, float]:
-    """Same letterbox as perception.detector: scale to fit, pad with 114 centred. Returns img, scale, dx, dy."""
-    h, w = img.shape[:2]
-    s = min(size / w, size / h)
-    nw, nh = round(w * s), round(h * s)
-    dx, dy = (size - nw) // 2, (size - nh) // 2
-    out = np.full((size, size, 3), 114, np.uint8)
-    out[dy:dy + nh, dx:dx + nw] = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
-    return out, s, dx, dy
 
 
 def build_model(nc: int = 1):
@@ -162,7 +152,7 @@ def giou(a, b):
 
 def sample(rng: np.random.Generator, cam: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     img, box = random_scene(rng, cam, TRAIN_STYLE)
-    lb, s, dx, dy = letterbox(img)
+    lb, s, dx, dy = letterbox(img, (INPUT, INPUT))
     boxes = np.zeros((0, 4), np.float32)
     if box is not None:
         x0, y0, x1, y1 = box.xyxy
