@@ -320,7 +320,7 @@ class VehicleLink:
         try:
             return await asyncio.wait_for(asyncio.shield(task), timeout)
         except TimeoutError:
-            raise CommandTimeout(f"{what}: no answer from the autopilot within {timeout:.1f} s") from None
+            raise CommandTimeout(f"{what}: no answer within {timeout:.1f} s") from None
 
     def _why(self) -> str:
         return f" (autopilot says: {self._status_text})" if self._status_text else ""

@@ -209,7 +209,8 @@ class SimPX4:
         self._cfg = config
         self.quad_params = params if params is not None else QuadParams.from_config(config)
         self._quad = Quadrotor(self.quad_params, initial_state)
-        self._dt = 1.0 / float(config.sim.rate)
+        # Thread tick: at most 250 Hz (Python's budget); Quadrotor.step substeps to sim.rate inside a tick.
+        self._dt = 1.0 / min(float(config.sim.rate), 250.0)
         self._rng = np.random.default_rng(int(config.sim.seed) + 4242)  # own stream: sim's other users
         sens = config.sim.sensors
         if not noise:  # perfect sensors: every noise and bias std zero
