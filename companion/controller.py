@@ -174,17 +174,20 @@ class PNController:
     def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
         """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies
         pixel noise, and k_PN v_rel_bar (~30 m/s) turns it into thrust jitter. Kept normal to the LOS."""
-        if self.p.rate_cutoff_hz <= 0.0:
-            lam = math.sqrt(float(w @ w))
-            return lam, (w / lam if lam > 0.0 else w)
-        if self._w is None or not (0.0 < dt <= self.p.max_dt):
-            self._w = w.copy()
-        else:
-            beta = 1.0 - math.exp(-2.0 * math.pi * self.p.rate_cutoff_hz * dt)
-            self._w = self._w + beta * (w - self._w)
-            self._w -= float(self._w @ l_f) * l_f
-        lam = math.sqrt(float(self._w @ self._w))
-        return lam, (self._w / lam if lam > 0.0 else np.zeros(3))
+        wx, wy, wz = w.tolist()  # scalar math: this runs every frame
+        if self.p.rate_cutoff_hz > 0.0:
+            if self._w is None or not (0.0 < dt <= self.p.max_dt):
+                self._w = w.copy()
+            else:
+                beta = 1.0 - math.exp(-2.0 * math.pi * self.p.rate_cutoff_hz * dt)
+                ox, oy, oz = self._w.tolist()
+                wx, wy, wz = ox + beta * (wx - ox), oy + beta * (wy - oy), oz + beta * (wz - oz)
+                lx, ly, lz = l_f.tolist()
+                d = wx * lx + wy * ly + wz * lz
+                wx, wy, wz = wx - d * lx, wy - d * ly, wz - d * lz
+                self._w = np.array([wx, wy, wz])
+        lam = math.sqrt(wx * wx + wy * wy + wz * wz)
+        return lam, (np.array([wx / lam, wy / lam, wz / lam]) if lam > 0.0 else np.zeros(3))
 
     def _no_box(self, t: float, R_ned_frd: np.ndarray, rejected: str) -> ControlOutput:
         zero = np.zeros(3)
