@@ -34,6 +34,10 @@ class SafetyConfig(Section):
         0.5, gt=0.0, le=10.0,
         description="s without a fresh setpoint from the control loop before the watchdog hands over to HOLD",
     )
+    loop_stall_timeout: Seconds = Field(
+        2.0, gt=0.0, le=60.0,
+        description="s the event loop may stop while commanding before the process kills itself (PX4 failsafe)",
+    )
     land_after_abort: bool = Field(
         False, description="after an abort in HOLD, land and disarm (False: stay in HOLD for the pilot)"
     )
@@ -55,7 +59,7 @@ class SyntheticCameraConfig(Section):
     height_offset: Meters = Field(0.0, ge=-50.0, le=50.0, description="m above the vehicle")
     radius: Meters = Field(1.0, gt=0.05, le=20.0, description="visual gate radius, m")
     count: int = Field(1, ge=1, le=20, description="gates in a row")
-    fault: Literal["none", "stall", "nan_box", "los_jump", "lose_target", "exception"] = Field(
+    fault: Literal["none", "stall", "nan_box", "los_jump", "lose_target", "exception", "block"] = Field(
         "none", description="test switch: camera/perception fault injected after fault_after"
     )
     fault_after: Seconds = Field(1.0, ge=0.0, le=600.0, description="s after the first frame")

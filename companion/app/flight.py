@@ -26,6 +26,7 @@ import numpy as np
 
 from companion.app import link as linkmod
 from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
+from companion.app.deadman import LoopDeadman
 from companion.app.notify import Notifier
 from companion.app.safety import Abort, CloseDetector, SafetyLimits, mode_is_pilot
 from companion.app.states import Reason, State, StateMachine, Transition
@@ -111,6 +112,7 @@ class FlightApp:
         self._baro0: float | None = None
         self._connected = False
         self._last_out: ControlOutput | None = None
+        self._deadman: LoopDeadman | None = None
 
     # ------------------------------------------------------------------------------ public
     def trip(self, reason: Reason, detail: str) -> None:
@@ -135,6 +137,9 @@ class FlightApp:
 
     async def run(self) -> Reason:
         cpu0, wall0 = time.process_time(), self.clock()
+        deadman = LoopDeadman(self.cfg.safety.loop_stall_timeout, lambda: self.sm.state.offboard,
+                              self._last_words).start()
+        self._deadman = deadman
         monitors = [asyncio.create_task(self._monitor(), name="telemetry-monitor"),
                     asyncio.create_task(self._watchdog(), name="watchdog"),
                     asyncio.create_task(self._status_loop(), name="status")]
@@ -162,6 +167,7 @@ class FlightApp:
         for m in monitors:
             m.cancel()
         await asyncio.gather(*monitors, return_exceptions=True)
+        deadman.stop()
         self.camera.close()
         self.stats.cpu_s = time.process_time() - cpu0
         self.stats.wall_s = self.clock() - wall0
@@ -477,11 +483,18 @@ class FlightApp:
         limit = self.cfg.safety.perception_stall_timeout
         while not self.sm.done:
             await asyncio.sleep(min(0.05, limit / 4))
+            if self._deadman is not None:
+                self._deadman.beat()  # the loop runs: the deadman thread stays quiet
             if self.sm.state.offboard and self._fault is None:
                 age = self.clock() - self._last_setpoint
                 if age > limit:
                     self.trip(Reason.PERCEPTION_STALL,
                               f"watchdog: no fresh setpoint for {age:.2f} s (limit {limit:.2f} s)")
+
+    def _last_words(self, text: str) -> None:
+        """From the deadman thread, the loop being stuck: one event line, then everything to the OS."""
+        self.log.event(text, "error")
+        self.log.flush()
 
     async def _status_loop(self) -> None:
         wd = Notifier.watchdog_interval()

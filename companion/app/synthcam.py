@@ -69,6 +69,10 @@ class FaultInjector:
                     BoundingBox(5000.0, -80.0, 40.0, 30.0, 1.0, t))[self.jumped % 3]
         if self.kind == "lose_target":
             return None
+        if self.kind == "block":  # a detector call that never returns, on the event loop's thread
+            import time
+
+            time.sleep(3600)
         if self.kind == "exception":
             raise RuntimeError("injected perception failure (app.synthetic.fault=exception)")
         if self.kind == "los_jump" and box is not None and self.jumped < 2:

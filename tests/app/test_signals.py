@@ -20,10 +20,11 @@ from companion.flightlog import read_flight
 pytestmark = pytest.mark.timeout(120)
 
 
-def _start_fly(tmp_path: Path, url: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen, Path]:
+def _start_fly(tmp_path: Path, url: str, env: dict[str, str] | None = None,
+               extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, Path]:
     logdir = tmp_path / "flights"
     cmd = [sys.executable, "-m", "companion.cli", "fly", "--url", url, "--log-dir", str(logdir), "--no-plot"]
-    for o in BASE_OVERRIDES:
+    for o in (*BASE_OVERRIDES, *extra):
         cmd += ["--set", o]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             cwd=Path(__file__).resolve().parents[2], env={**os.environ, **(env or {})})
@@ -127,3 +128,28 @@ def test_sigkill_mid_flight_leaves_a_readable_log(sim, tmp_path):
     # mavsdk died with the process: setpoints stopped, PX4's offboard-loss failsafe holds.
     assert sim.wait_event("failsafe:offboard_loss", timeout=5.0) is not None
     assert sim.wait_for(lambda: sim.mode == "HOLD", timeout=5.0)
+
+
+def test_blocked_event_loop_kills_the_process_so_px4_fails_safe(sim, tmp_path):
+    """A call that never returns on the loop's thread: no watchdog task can run; the deadman thread kills us."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk,
+                              extra=("app.synthetic.fault=block", "app.synthetic.fault_after=1.0"))
+    try:
+        folder = _wait_engaged(proc, logdir)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == -signal.SIGKILL
+    assert "event loop stalled" in err
+    f = read_flight(folder)
+    assert f.summary == {"outcome": "running"} and f.state_path()[-1] == "ENGAGE"
+    assert any("event loop stalled" in str(t) for t in f["events"]["text"])  # its last words reached the log
+    # The vehicle left OFFBOARD: the link's loop guard (a thread) commanded HOLD at ~1.2 s, or, had that
+    # failed, PX4's offboard-loss failsafe after the kill. Either way no setpoint arrives any more.
+    assert sim.wait_for(lambda: sim.mode == "HOLD", timeout=5.0)
+    ev = [e for _, e in sim.events]
+    assert any(e.startswith("mode:HOLD") for e in ev[ev.index("mode:OFFBOARD:command"):])
+    n = sim.setpoint_count
+    time.sleep(0.5)
+    assert sim.setpoint_count == n
