@@ -127,8 +127,8 @@ class FlightApp:
     def on_link_event(self, kind: str, detail: dict[str, Any]) -> None:
         """Every link event goes to the log; the ones that end a flight trip the state machine."""
         self.log.event(f"link {kind} {detail}" if detail else f"link {kind}", "warn" if kind in (
-            "watchdog", "offboard_lost", "link_lost", "close_leaked", "telemetry_error") else "info")
-        if kind == "watchdog":  # the link's own setpoint watchdog fired: our control output stopped
+            "watchdog", "loop_guard", "offboard_lost", "link_lost", "close_leaked", "telemetry_error") else "info")
+        if kind in ("watchdog", "loop_guard"):  # the link's setpoint watchdog / loop guard: our output stopped
             self.trip(Reason.PERCEPTION_STALL, f"link watchdog: no fresh setpoint for {detail.get('age', 0):.2f} s")
         elif kind == "offboard_lost":  # PX4 left OFFBOARD by itself: the pilot (or a PX4 failsafe) has it
             self.trip(Reason.PILOT_TAKEOVER, f"vehicle left OFFBOARD for {detail.get('mode')}")

@@ -189,6 +189,14 @@ async def fly(
 # ---------------------------------------------------------------------------- simulated PX4 process
 
 
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the parent dies (Linux prctl PR_SET_PDEATHSIG)."""
+    import ctypes
+
+    with contextlib.suppress(Exception):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+
+
 class SimPX4Process:
     """The simulated PX4 in its own process (``python -m companion.sim.px4 --port 0``), for real-time runs."""
 
@@ -200,8 +208,11 @@ class SimPX4Process:
         for o in overrides or []:
             cmd += ["--set", o]
         cmd += extra or []
+        # Own session: a Ctrl-C in the terminal reaches the app only, which hands over to HOLD while the
+        # simulated PX4 still runs; the parent-death signal still ends the sim if the app is killed.
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                     bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                     bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                                     start_new_session=True, preexec_fn=_die_with_parent)
         self.port = self._read_port(timeout)
 
     def _read_port(self, timeout: float) -> int:

@@ -38,3 +38,36 @@ def test_companion_sim_in_process_still_works(tmp_path):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=100, cwd=Path(__file__).resolve().parents[2])
     assert r.returncode == 0, r.stderr[-2000:]
     assert "stationary seed 0" in r.stdout and (tmp_path / "run.json").exists()
+
+
+def test_ctrl_c_hands_over_while_the_simulated_px4_keeps_running(tmp_path):
+    """Ctrl-C hits the terminal's process group: the app hands over to HOLD; the sim (own session) survives it."""
+    import os
+    import queue
+    import signal
+    import threading
+
+    # A far gate (50 m): a long engagement, so the signal lands in it even on a loaded machine.
+    cmd = [sys.executable, "-m", "companion.cli", "sim", "--camera", "geometric", "--no-plot",
+           "--set", "app.takeoff_altitude=5", "--set", "app.synthetic.distance=50",
+           "--set", f"log.directory={tmp_path / 'flights'}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            cwd=Path(__file__).resolve().parents[2])
+    lines: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(x) for x in proc.stderr], daemon=True).start()
+    try:
+        while True:
+            line = lines.get(timeout=40)
+            if " ENGAGE mode=OFFBOARD " in line:
+                break
+        os.killpg(proc.pid, signal.SIGINT)  # what a Ctrl-C in the terminal does
+        out, _ = proc.communicate(timeout=40)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == 23, out
+    assert "outcome: SAFE_HOLD (SIGNAL)" in out
+    f = read_flight(latest_flight(tmp_path / "flights"))
+    assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_HOLD"]
+    assert "SIGINT" in f.states[-1]["reason"]
