@@ -206,3 +206,22 @@ def test_no_target_in_view_lands(sim, tmp_path):
     assert "no stable track within 1.5 s" in f.states[-2]["reason"]
     assert (f["detections"]["valid"] == 0).all() and len(f["setpoints"]) == 0
     assert not sim.armed and sim.landed
+
+
+def test_handover_unanswered_falls_back_to_px4_failsafe(sim, tmp_path):
+    """Target lost, but PX4 answers no command: stop streaming so PX4's own offboard-loss failsafe acts."""
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.synthetic.fault=lose_target",
+                      "app.synthetic.fault_after=1.5", "link.command_timeout=1.0")
+
+    async def silence(app) -> None:
+        await wait_state(app, "ENGAGE")
+        await asyncio.sleep(1.0)
+        sim.silence_commands(True)
+
+    reason, folder, _ = run_flight(cfg, silence)
+    f, end, why = _end(folder)
+    assert reason is Reason.TARGET_LOST and end == "SAFE_FAILSAFE_LINK", why
+    assert "offboard stop failed" in why and "no answer" in why
+    assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_FAILSAFE_LINK"]
+    assert sim.wait_event("failsafe:offboard_loss", timeout=5.0) is not None
+    assert sim.wait_for(lambda: sim.mode == "HOLD", timeout=5.0)
