@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from companion.configbase import Hertz, Meters, Number, Seconds, Section
+from companion.configbase import Deg, Hertz, Meters, Number, Seconds, Section
 
 
 class LinkConfig(Section):
@@ -85,6 +85,9 @@ class AppConfig(Section):
     on_close: Literal["fly_through", "pull_up"] = Field(
         "fly_through",
         description="fly_through: hold attitude until the gate leaves the view; pull_up: recover at once",
+    )
+    pull_up_pitch: Deg = Field(
+        25.0, ge=0.0, le=45.0, description="deg nose-up in a pull-up (brakes and climbs before impact)"
     )
     pass_timeout: Seconds = Field(1.0, gt=0.0, le=10.0, description="s; longest hold while passing a gate")
     recover_time: Seconds = Field(1.0, gt=0.0, le=30.0, description="s of level attitude and hover thrust")

@@ -32,7 +32,7 @@ from companion.app.safety import Abort, CloseDetector, SafetyLimits, mode_is_pil
 from companion.app.states import Reason, State, StateMachine, Transition
 from companion.controller import ControlOutput, PNController
 from companion.flightlog import FlightLog
-from companion.frames import euler_ned_deg_from_R
+from companion.frames import R_from_euler_ned_deg, euler_ned_deg_from_R
 from companion.guidance import Setpoint, hover_setpoint
 
 if TYPE_CHECKING:
@@ -256,11 +256,14 @@ class FlightApp:
                     return
                 continue
             if st is State.RECOVER and self.clock() - self._recover_start >= app.recover_time:
-                if app.next_gate and streak >= app.acquire_frames and self.stats.gates_passed < app.max_gates:
+                # A next gate only when flying through gates: after a pull-up the target is still ahead.
+                if (app.next_gate and app.on_close == "fly_through" and streak >= app.acquire_frames
+                        and self.stats.gates_passed < app.max_gates):
                     await self._engage(frame, box, t_avail, f"next gate tracked for {streak} frames")
                     continue
-                await self._land_normally(Reason.OK, f"{self.stats.gates_passed} gate(s) passed; no next gate",
-                                          State.HANDBACK)
+                done = ("pulled up before the target" if app.on_close == "pull_up"
+                        else f"{self.stats.gates_passed} gate(s) passed; no next gate")
+                await self._land_normally(Reason.OK, done, State.HANDBACK)
                 return
             await self._frame(frame, box, valid, t_avail)
             if st is not State.RECOVER and self.sm.state is State.RECOVER:
@@ -288,7 +291,8 @@ class FlightApp:
                     self._pass_peak = max(box.w, box.h) if valid else 0.0
                     self.sm.go(State.PASS, f"gate close: {est.why}")
                 else:
-                    self._start_recover(f"pull-up: {est.why}")
+                    self.stats.gates_passed += 1  # the intercept is over: brake and climb away before impact
+                    self._start_recover(f"pull-up: {est.why}", pull_up=True)
                     sp = self._recover_sp
         elif st is State.PASS:
             sp = self._pass_sp  # hold the attitude that points at the gate until it is behind us
@@ -342,10 +346,15 @@ class FlightApp:
         return Setpoint(sp.roll_deg, sp.pitch_deg, sp.yaw_deg, min(1.0, max(self.ctrl.p.thrust_min, thrust)),
                         sp.R_ned_frd)
 
-    def _start_recover(self, why: str) -> None:
+    def _start_recover(self, why: str, pull_up: bool = False) -> None:
         yaw = euler_ned_deg_from_R(self.link.attitude.R_ned_frd)[2]
         thrust = min(1.0, self.ctrl.p.hover_thrust * self.cfg.app.recover_thrust_scale)
         self._recover_sp = hover_setpoint(yaw, thrust)
+        if pull_up:
+            # Nose up: the thrust tilts backwards (brakes); its vertical part still carries scale x weight.
+            pitch = self.cfg.app.pull_up_pitch
+            R = R_from_euler_ned_deg(0.0, pitch, yaw)
+            self._recover_sp = Setpoint(0.0, pitch, yaw, min(1.0, thrust / math.cos(math.radians(pitch))), R)
         self._recover_start = self.clock()
         reset = getattr(self.perception, "reset", None)
         if reset is not None:

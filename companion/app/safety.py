@@ -30,17 +30,21 @@ class CloseEstimate:
 class CloseDetector:
     """Box history of one engagement -> "the gate is about to be passed"."""
 
-    def __init__(self, app: AppConfig, image_width: int, window_s: float = 0.25, min_samples: int = 4) -> None:
+    def __init__(self, app: AppConfig, image_width: int, window_s: float = 0.25, min_samples: int = 7,
+                 persist: int = 2) -> None:
         self.trigger = app.close_trigger
         self.ttc_threshold = app.ttc_threshold
         self.size_threshold = app.size_threshold
         self.width = float(image_width)
         self.window_s = window_s
         self.min_samples = min_samples
+        self.persist = persist  # consecutive frames below the TTC threshold: one noisy slope is not a contact
         self._hist: deque[tuple[float, float]] = deque(maxlen=64)
+        self._below = 0
 
     def reset(self) -> None:
         self._hist.clear()
+        self._below = 0
 
     def ttc(self) -> float:
         """Least-squares slope of size over the recent window: noise on single frames averages out."""
@@ -48,7 +52,8 @@ class CloseDetector:
             return math.inf
         t_last = self._hist[-1][0]
         pts = [(t, s) for t, s in self._hist if t_last - t <= self.window_s]
-        if len(pts) < self.min_samples:
+        # A full window only: a slope over a few frames right after acquisition is mostly pixel noise.
+        if len(pts) < self.min_samples or pts[-1][0] - pts[0][0] < 0.8 * self.window_s:
             return math.inf
         t = np.array([p[0] for p in pts])
         s = np.array([p[1] for p in pts])
@@ -68,7 +73,8 @@ class CloseDetector:
             self._hist.append((t, max(box.w, box.h)))
         size = self._hist[-1][1] / self.width if self._hist else 0.0
         tau = self.ttc()
-        by_ttc = self.trigger in ("ttc", "either") and tau < self.ttc_threshold
+        self._below = self._below + 1 if tau < self.ttc_threshold else 0
+        by_ttc = self.trigger in ("ttc", "either") and self._below >= self.persist
         by_size = self.trigger in ("size", "either") and size > self.size_threshold
         why = ""
         if by_ttc:

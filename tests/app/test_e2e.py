@@ -152,3 +152,28 @@ def test_rendered_frames_through_the_detector_end_to_end(sim, tmp_path):
     assert "PASS" in f.state_path() and f.state_path()[-1] == "SAFE_LANDED"
     assert len(gate_crossings(f)) == 1
     assert summary["frame_to_setpoint_ms"]["n"] > 50
+
+
+def test_intercept_pulls_up_before_impact(sim, tmp_path):
+    """on_close=pull_up (intercept): at time-to-contact 1.5 s, brake nose-up and climb; never reach the target.
+
+    At ~10 m/s, 35 deg nose-up brakes at g tan(35 deg) ~ 6.9 m/s^2: ~7 m plus ~3 m of attitude lag,
+    inside the ~15 m left at the trigger.
+    """
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.on_close=pull_up", "app.close_trigger=ttc",
+                      "app.ttc_threshold=1.5", "app.pull_up_pitch=35", "app.synthetic.motion=stationary")
+    reason, folder, summary = run_flight(cfg)
+    assert reason is Reason.OK, summary
+    f = read_flight(folder)
+    path = f.state_path()
+    assert path[path.index("ENGAGE"):] == ["ENGAGE", "RECOVER", "HANDBACK", "LAND", "SAFE_LANDED"]
+    assert f.states[path.index("RECOVER")]["reason"].startswith("pull-up: time-to-contact")
+    sp = f["setpoints"]
+    rec = sp["state"] == "RECOVER"
+    assert np.allclose(sp["pitch_deg"][rec], cfg.app.pull_up_pitch) and np.allclose(sp["roll_deg"][rec], 0.0)
+    # Independent check from the logged truth: the vehicle never came within 1.5 m of the target's centre.
+    tr, gate = f["truth"], f["gate"]
+    c = np.array([gate["gate_n"][0], gate["gate_e"][0], gate["gate_d"][0]])
+    p = np.column_stack([tr["n"], tr["e"], tr["d"]])
+    assert np.linalg.norm(p - c, axis=1).min() > 2.0
+    assert gate_crossings(f) == [] or not any(c.through for c in gate_crossings(f))

@@ -137,3 +137,13 @@ def test_notify_protocol_on_a_real_socket(tmp_path, monkeypatch):
     monkeypatch.delenv("NOTIFY_SOCKET")
     quiet = Notifier()
     assert not quiet.enabled and not quiet.ready()
+
+
+def test_ttc_does_not_trigger_on_noise_right_after_acquisition():
+    """The failure seen in flight: a hovering vehicle, a 40 px box with pixel noise, fresh after reset."""
+    rng = np.random.default_rng(11)
+    for trial in range(50):
+        det = CloseDetector(AppConfig(close_trigger="ttc", ttc_threshold=1.5), 640)
+        for i in range(15):
+            t = trial * 10 + i / 30
+            assert not det.update(t, box(40.0 + rng.normal(0, 1.5), t), True).close, (trial, i)
