@@ -124,6 +124,16 @@ class FlightApp:
         if self._seq is not None and not self._seq.done():
             self._seq.cancel()
 
+    def _check_fault(self) -> None:
+        """Raise the tripped fault inside the sequence.
+
+        trip() also cancels the sequence task, but Python 3.11's asyncio.wait_for (used by the link for
+        every mavsdk call) can swallow a cancellation that races with the call's completion: the fault
+        must not depend on it, so the sequence checks at every step too.
+        """
+        if self._fault is not None:
+            raise _Tripped(self._fault)
+
     def on_link_event(self, kind: str, detail: dict[str, Any]) -> None:
         """Every link event goes to the log; the ones that end a flight trip the state machine."""
         self.log.event(f"link {kind} {detail}" if detail else f"link {kind}", "warn" if kind in (
@@ -197,9 +207,11 @@ class FlightApp:
         self.sm.go(State.CONNECT, f"connecting to {cfg.link.url}")
         await self.link.connect()
         self._connected = True
+        self._check_fault()
         self.sm.go(State.PREFLIGHT, "autopilot found")
         await self.link.wait_healthy()
         hover = await self.link.hover_thrust()
+        self._check_fault()
         if hover is not None and 0.05 < hover < 0.95:
             self.ctrl = self.ctrl.with_hover_thrust(hover, cfg.airframe.thrust_to_weight)
             self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
@@ -207,12 +219,15 @@ class FlightApp:
         if cfg.app.start == "takeoff":
             self.sm.go(State.ARM, "preflight checks passed")
             await self.link.arm()
+            self._check_fault()
             self.sm.go(State.TAKEOFF, f"armed; take-off to {cfg.app.takeoff_altitude:.1f} m")
             await self.link.takeoff(cfg.app.takeoff_altitude)
+            self._check_fault()
             self.sm.go(State.ACQUIRE, "take-off done, PX4 holds")
         else:
             self.sm.go(State.WAIT_PILOT, "waiting for the pilot to hover")
             await self._wait_pilot_hover()
+            self._check_fault()
             self.sm.go(State.ACQUIRE, "pilot hovers armed in the air")
         await self._fly()
 
@@ -228,6 +243,7 @@ class FlightApp:
             since = (since or self.clock()) if hovering else None
             if since is not None and self.clock() - since >= 1.0:
                 return
+            self._check_fault()
             if self.clock() > deadline:
                 raise _Tripped(Abort(Reason.NO_TARGET, f"the pilot did not hover within "
                                      f"{self.cfg.app.pilot_wait_timeout:.0f} s"))
@@ -239,9 +255,11 @@ class FlightApp:
         acquire_start = self.clock()
         streak = 0  # consecutive valid boxes
         while True:
+            self._check_fault()
             frame = await self.camera.read()
             t_avail = self.clock()
             box = await self._perceive(frame)
+            self._check_fault()
             valid = box is not None and box.is_valid(self.width, self.height)
             streak = streak + 1 if valid else 0
             self.stats.frames += 1
@@ -329,6 +347,7 @@ class FlightApp:
             # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
             # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
             await self.link.start_offboard(out.setpoint)
+            self._check_fault()
             self._last_setpoint = self.clock()
             # Logged, but not a latency sample: it includes PX4's mode switch, once per flight.
             self._log_control(frame, out, out.setpoint, (self._last_setpoint - t_avail) * 1e3)
@@ -367,6 +386,7 @@ class FlightApp:
             self.sm.go(State.HANDBACK, why)
             self._last_setpoint = math.inf  # we no longer owe setpoints
             await self.link.stop_offboard()
+            self._check_fault()
             if pilot:
                 self.sm.go(State.SAFE_HOLD, "PX4 holds; the pilot lands", reason)
                 return
@@ -376,7 +396,9 @@ class FlightApp:
             return
         self.sm.go(State.LAND, why)
         await self.link.land()
+        self._check_fault()
         await self.link.wait_landed_and_disarm()
+        self._check_fault()
         self.sm.go(State.SAFE_LANDED, "landed and disarmed", reason)
 
     async def _perceive(self, frame: Frame) -> Any:

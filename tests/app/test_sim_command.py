@@ -46,6 +46,7 @@ def test_ctrl_c_hands_over_while_the_simulated_px4_keeps_running(tmp_path):
     import queue
     import signal
     import threading
+    import time
 
     # A far gate (50 m): a long engagement, so the signal lands in it even on a loaded machine.
     cmd = [sys.executable, "-m", "companion.cli", "sim", "--camera", "geometric", "--no-plot",
@@ -61,13 +62,16 @@ def test_ctrl_c_hands_over_while_the_simulated_px4_keeps_running(tmp_path):
             if " ENGAGE mode=OFFBOARD " in line:
                 break
         os.killpg(proc.pid, signal.SIGINT)  # what a Ctrl-C in the terminal does
-        out, _ = proc.communicate(timeout=40)
+        t_sig = time.monotonic()
+        proc.wait(timeout=40)
+        out = proc.stdout.read()
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
-    assert proc.returncode == 23, out
-    assert "outcome: SAFE_HOLD (SIGNAL)" in out
     f = read_flight(latest_flight(tmp_path / "flights"))
+    at_signal = [r["to_state"] for r in f.states if float(r["t"]) <= t_sig - f.meta["t0_monotonic"]]
+    assert proc.returncode == 23, (out, at_signal, f.states[-3:])
+    assert "outcome: SAFE_HOLD (SIGNAL)" in out
     assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_HOLD"]
     assert "SIGINT" in f.states[-1]["reason"]
