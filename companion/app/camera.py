@@ -24,6 +24,7 @@ class Frame:
     t: float  # capture time, s, on the app's monotonic clock
     image: np.ndarray | None = None
     box: BoundingBox | None = None
+    truth_box: BoundingBox | None = None  # synthetic images: where the gate really is (scoring only)
 
 
 class CameraSource(Protocol):

@@ -190,22 +190,22 @@ class SyntheticCamera:
             depth = float((c - p_enu) @ R_enu_flu[:, 0])
             if depth > 0.0 and (best is None or depth < best[0]):
                 best = (depth, g, c)
-        box = None
+        box = truth = None
         image = None
         if self.render == "geometric":
             if best is not None:
                 box = self.geo.capture(t, p_enu, R_enu_flu, best[2], best[1].normal, self.scene.radius)
         else:
-            image = self._render(t, p_enu, R_enu_flu, best)
+            image, truth = self._render(t, p_enu, R_enu_flu, best)
         if self.on_gate is not None:
             # Every gate, every frame (scoring needs each one's plane crossing); visible = the one drawn.
             for k, g in enumerate(self.scene.gates, 1):
                 in_view = best is not None and g is best[1] and (box is not None or image is not None)
                 self.on_gate(k, g, g.position(ts), self.scene.radius, in_view)
-        return Frame(self.index, t, image, box)
+        return Frame(self.index, t, image, box, truth)
 
     def _render(self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray,
-                best: tuple[float, GateMotion, np.ndarray] | None) -> np.ndarray:
+                best: tuple[float, GateMotion, np.ndarray] | None) -> tuple[np.ndarray, BoundingBox | None]:
         from perception.render import TRAIN_STYLE, Gate, PinholeCamera, make_background, render_gate_frame
 
         cam = PinholeCamera.from_config(self.cfg.camera)
@@ -214,9 +214,8 @@ class SyntheticCamera:
                                                TRAIN_STYLE)
         R_enu_cam = R_enu_flu @ F_FRD_FLU @ self.model.R_body_cam
         gate = None if best is None else Gate(best[2], best[1].normal, self.scene.radius if self.scene else 1.0)
-        img, _ = render_gate_frame(cam, R_enu_cam, p_enu, gate, style=None, rng=self.rng,
-                                   background=self._background, t=t)
-        return img
+        return render_gate_frame(cam, R_enu_cam, p_enu, gate, style=None, rng=self.rng,
+                                 background=self._background, t=t)
 
     def close(self) -> None:
         self.closed = True

@@ -78,3 +78,23 @@ def test_synthetic_gate_behind_the_camera_gives_no_box():
     assert cam.capture(0.0, first).box is not None
     turned = _pose([0.0, 0.0, -10.0], 180.0)  # facing away from the gate
     assert cam.capture(0.1, turned).box is None
+
+
+def test_rendered_and_geometric_cameras_agree_on_where_the_gate_is():
+    """The two synthetic renderings, same pose: the drawn gate's true box = the projected box."""
+    ov = ["app.synthetic.motion=stationary", "app.synthetic.distance=15", "app.synthetic.lateral_offset=-1.5",
+          "app.synthetic.height_offset=0.5", "sim.camera.pixel_noise=0"]
+    cfg = load_config([], ov)
+    pose = _pose([1.0, 2.0, -8.0], 30.0)
+    geo = SyntheticCamera(cfg, lambda: pose, render="geometric").capture(0.0, pose)
+    img = SyntheticCamera(cfg, lambda: pose, render="image").capture(0.0, pose)
+    assert img.image.shape == (480, 640, 3) and img.image.dtype == np.uint8 and img.box is None
+    g, r = geo.box, img.truth_box
+    # The renderer draws the outer rim of a ring with a 0.15 m frame; the geometric camera the 1 m circle.
+    assert r.cx == pytest.approx(g.cx, abs=1.5) and r.cy == pytest.approx(g.cy, abs=1.5)
+    assert r.w == pytest.approx(g.w, rel=0.03) and r.h == pytest.approx(g.h, rel=0.03)
+    # And the image shows the gate there: its colour (BGR 0, 90, 255, unshaded) only inside that box.
+    gate_px = np.abs(img.image.astype(int) - [0, 90, 255]).sum(axis=2) < 30
+    x0, y0, x1, y1 = (int(v) for v in r.xyxy)
+    inside = gate_px[y0:y1 + 1, x0:x1 + 1].sum()
+    assert inside > 300 and inside >= 0.99 * gate_px.sum()
