@@ -225,3 +225,14 @@ def test_handover_unanswered_falls_back_to_px4_failsafe(sim, tmp_path):
     assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_FAILSAFE_LINK"]
     assert sim.wait_event("failsafe:offboard_loss", timeout=5.0) is not None
     assert sim.wait_for(lambda: sim.mode == "HOLD", timeout=5.0)
+
+
+def test_land_after_abort(sim, tmp_path):
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.synthetic.fault=lose_target", "app.synthetic.fault_after=1.0",
+                      "safety.land_after_abort=true")
+    reason, folder, _ = run_flight(cfg)
+    f, end, why = _end(folder)
+    assert reason is Reason.TARGET_LOST and end == "SAFE_LANDED", why
+    assert f.state_path()[-4:] == ["ENGAGE", "HANDBACK", "LAND", "SAFE_LANDED"]
+    assert f.summary["exit_code"] == Reason.TARGET_LOST.value  # landed safely, but the flight failed
+    assert not sim.armed and sim.landed
