@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from companion.config import load_config
 from perception.los import CameraModel
@@ -32,15 +31,13 @@ def test_rendered_camera_boxes_the_gate_on_an_approach() -> None:
     assert boxed >= 38 and good >= boxed - 2
 
 
-def test_substitute_has_the_geometric_cameras_signature_and_flies_a_run(monkeypatch: pytest.MonkeyPatch) -> None:
-    """run_once with the rendered camera swapped in: a stationary 1 m gate is flown through."""
-    import companion.sim.runner as runner
+def test_rendered_camera_in_the_sim_runner_flies_a_run() -> None:
+    """run_once with camera="rendered" (perception/simcamera.py in the loop): a stationary 1 m gate is flown through."""
     from companion.sim.runner import RunSpec, run_once
 
     cfg = load_config()
     geo = run_once(cfg, RunSpec("stationary", seed=0))
-    monkeypatch.setattr(runner, "GeometricCamera", geometric_camera_substitute(cfg))
-    ren = run_once(cfg, RunSpec("stationary", seed=0))
+    ren = run_once(cfg, RunSpec("stationary", seed=0, camera="rendered"))
     assert geo.outcome.crossed
     assert ren.outcome.crossed, ren.outcome.reason
     assert ren.outcome.d_center < 1.0
