@@ -164,7 +164,7 @@ def train(args: argparse.Namespace) -> None:
     import torch
 
     torch.manual_seed(args.seed)
-    torch.set_num_threads(1)  # 2 shared cores on the dev machine
+    torch.set_num_threads(args.threads)  # 1 by default: 2 shared cores on the dev machine
     rng = np.random.default_rng(args.seed)
     cam = PinholeCamera.default()
     model = build_model()
@@ -209,6 +209,11 @@ def train(args: argparse.Namespace) -> None:
                 a = rng.uniform(0.0, 1.0)
                 grey = cv2.cvtColor(cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
                 im = cv2.addWeighted(np.ascontiguousarray(im), a, grey, 1.0 - a, 0.0)
+            if args.hue and rng.random() < 0.5:
+                # Rotate hues (YOLO's hsv_h augmentation, full circle): a gate of any colour is a gate.
+                hsv = cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_BGR2HSV)
+                hsv[..., 0] = ((hsv[..., 0].astype(np.int16) + int(rng.integers(180))) % 180).astype(np.uint8)
+                im = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
             imgs.append(im)
             boxes.append(bx)
         x = torch.from_numpy(np.stack(imgs)[..., ::-1].copy()).permute(0, 3, 1, 2).float() / 255.0
@@ -258,8 +263,12 @@ def write_model(model, args: argparse.Namespace, total: int, step: int, minutes:
         "input": "RGB float 0..1, NCHW, letterboxed with pad value 114",
         "output": "[1, 4 + nc, N]: cx, cy, w, h (input pixels), class probabilities",
         "training": {
-            "command": f"tools/train_detector.py --seed {args.seed} --steps {total}"
+            "command": f"tools/train_detector.py --seed {args.seed} --steps {total} --lr {args.lr}"
+                       + f" --threads {args.threads}" + (" --hue" if args.hue else "")
+                       + (f" --resume {args.resume}" if args.resume else "")
                        + (f" --stop-at {step}" if step < total else ""),
+            "augment": "horizontal flip, desaturation towards grey (p 0.5)"
+                       + (", hue rotation (p 0.5)" if args.hue else ""),
             "seed": args.seed, "schedule_steps": total, "steps": step, "minutes": minutes,
             "batch": args.batch, "pool": args.pool, "fresh": args.fresh, "lr": args.lr,
             "params": sum(p.numel() for p in model.parameters()),
@@ -340,6 +349,8 @@ def main() -> int:
     p.add_argument("--fresh", type=int, default=3, help="new frames rendered per step")
     p.add_argument("--lr", type=float, default=3e-3)
     p.add_argument("--out", type=Path, default=ROOT / "perception" / "models")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (results depend on it)")
+    p.add_argument("--hue", action="store_true", help="hue-rotation augmentation (stage 2 of the shipped model)")
     p.add_argument("--eval-frames", type=int, default=400)
     p.add_argument("--eval-only", action="store_true")
     p.add_argument("--resume", type=Path, default=None, help="start from this state dict (.pt)")
