@@ -244,7 +244,7 @@ def add_config_arguments(parser: Any) -> None:
     )
     parser.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
-        help="override one value, e.g. --set guidance.k_pn=2.5 or --set sim.delay='100 ms'",
+        help="override one value, e.g. --set guidance.k_pn=2.5 or --set sim.camera.delay='100 ms'",
     )
 
 

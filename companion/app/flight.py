@@ -287,11 +287,16 @@ class FlightApp:
             if st is not State.RECOVER and self.sm.state is State.RECOVER:
                 streak = 0  # the next gate's track counts from here, not the passed gate's
 
+    def _attitude_at(self, t: float) -> np.ndarray:
+        """PX4's attitude estimate (IMU; NED/FRD wxyz) at a frame's capture time, not at its processing
+        time: the box must be rotated to the world with the attitude the camera had when it saw it."""
+        q = self.link.attitude_history.at(t)
+        return q if q is not None else self.link.attitude.q_wxyz
+
     async def _frame(self, frame: Frame, box: Any, valid: bool, t_avail: float) -> None:
         """One frame while we own the vehicle: controller, safety, pass detection, setpoint, log."""
         st = self.sm.state
-        q = self.link.attitude.q_wxyz  # PX4's attitude estimate (IMU), NED/FRD
-        out = self.ctrl.step(frame.t, box, q)
+        out = self.ctrl.step(frame.t, box, self._attitude_at(frame.t))
         self._last_out = out
         now = self.clock()
         if out.mode == "pn":
@@ -343,7 +348,7 @@ class FlightApp:
         self._engage_start = self._last_valid = self.clock()
         self.sm.go(State.ENGAGE, why)
         if first:
-            out = self.ctrl.step(frame.t, box, self.link.attitude.q_wxyz)
+            out = self.ctrl.step(frame.t, box, self._attitude_at(frame.t))
             # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
             # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
             await self.link.start_offboard(out.setpoint)

@@ -105,7 +105,9 @@ def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
             truth, att = link.truth_for_log, link.attitude
             if truth is None or att is None:
                 return None
-            return VehiclePose(time.monotonic(), truth.position_ned, att.q_wxyz)
+            # Stamped with the attitude sample's time: the frame is "captured" at the instant whose
+            # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
+            return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
 
         cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
         if cam.render == "geometric":

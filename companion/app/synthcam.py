@@ -170,6 +170,7 @@ class SyntheticCamera:
         while pose is None:  # no pose yet (telemetry just started): wait a tick
             await asyncio.sleep(self.period)
             pose = self.pose()
+        t = min(t, pose.t)  # capture time = the pose's own time (it may be a sample period old)
         if self.render == "image":
             frame = await asyncio.get_running_loop().run_in_executor(None, self.capture, t, pose)
         else:

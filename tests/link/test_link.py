@@ -342,3 +342,28 @@ def test_listening_mavsdk_finds_a_sim_that_sends_to_it(cfg: Config) -> None:
                 assert await link.hover_thrust() == pytest.approx(sim.param("MPC_THR_HOVER"), abs=1e-6)
 
         run(body, 25)
+
+
+def test_attitude_history_interpolates_like_slerp() -> None:
+    """Frames are paired with the attitude at their capture time; checked against scipy's Slerp."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from companion.app.link import AttitudeHistory
+
+    rots = Rotation.from_euler("ZYX", [[0, 0, 0], [3, -2, 1], [5, -4, 3], [6, -5, 2]], degrees=True)
+    ts = [10.0, 10.02, 10.04, 10.06]
+    hist = AttitudeHistory()
+    for t, r in zip(ts, rots, strict=True):
+        x, y, z, w = r.as_quat()
+        hist.add(t, (-1.0 if t == 10.04 else 1.0) * np.array([w, x, y, z]))  # a sign flip must not matter
+    hist.add(10.05, np.array([1.0, 0.0, 0.0, 0.0]))  # out of order: ignored
+    ref = Slerp(ts, rots)
+    for t in (10.0, 10.01, 10.033, 10.05, 10.06):
+        q = hist.at(t)
+        got = Rotation.from_quat([q[1], q[2], q[3], q[0]])
+        assert (got * ref(t).inv()).magnitude() < 1e-5
+    first = hist.at(9.0)
+    assert np.allclose(first, [1.0, 0.0, 0.0, 0.0])  # before the span: the first sample
+    x, y, z, w = rots[-1].as_quat()
+    assert np.allclose(hist.at(11.0), [w, x, y, z])  # after the span: the newest
+    assert AttitudeHistory().at(1.0) is None
