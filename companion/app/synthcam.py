@@ -147,6 +147,7 @@ class SyntheticCamera:
         self.t_scene0 = 0.0
         self.index = 0
         self._next: float | None = None
+        self._last_pose_t = -math.inf
         self._background: np.ndarray | None = None
         self.faults = FaultInjector(cfg.app.synthetic.fault, cfg.app.synthetic.fault_after, self.model.width)
         self.closed = False
@@ -170,7 +171,13 @@ class SyntheticCamera:
         while pose is None:  # no pose yet (telemetry just started): wait a tick
             await asyncio.sleep(self.period)
             pose = self.pose()
-        t = min(t, pose.t)  # capture time = the pose's own time (it may be a sample period old)
+        if pose.t > self._last_pose_t:
+            # Capture time = the pose's own time (up to a sample period old), so the controller's
+            # attitude-at-capture lookup finds the attitude that drew the frame.
+            self._last_pose_t = pose.t
+            t = min(t, pose.t)
+        # A stale pose (telemetry stopped, e.g. link lost) is drawn at the current time: the camera keeps
+        # running, and the attitude lookup past the newest sample returns that same sample.
         if self.render == "image":
             frame = await asyncio.get_running_loop().run_in_executor(None, self.capture, t, pose)
         else:
