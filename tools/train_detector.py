@@ -290,17 +290,10 @@ def export(model, path: Path) -> None:
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)", flush=True)
 
 
-def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
-
-
 def evaluate(model_path: Path, n: int, seed: int, style, backend: str = "cv2") -> dict:
     """Recall / precision at IoU 0.5 of the real Detector (perception.detector) on rendered frames."""
     from perception.detector import Detector
+    from perception.tracker import iou
 
     det = Detector(model_path, "gate", backend=backend)
     rng = np.random.default_rng(seed)
@@ -313,7 +306,7 @@ def evaluate(model_path: Path, n: int, seed: int, style, backend: str = "cv2") -
         dets = det.detect(img)
         matched = False
         for d in dets:
-            if gt is not None and not matched and _iou(d.xyxy, gt.xyxy) >= 0.5:
+            if gt is not None and not matched and iou(d, gt) >= 0.5:
                 tp += 1
                 matched = True
                 centre_err.append(math.hypot(d.cx - gt.cx, d.cy - gt.cy))

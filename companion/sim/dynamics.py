@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.frames import R_from_quat_wxyz
+
 G = 9.81  # m/s^2, the paper's |g|
 
 
@@ -278,15 +280,8 @@ class Quadrotor:
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit xyzw quaternion (same result as scipy's ``from_quat().as_matrix()``)."""
-    x, y, z, w = (float(c) for c in q)
-    n = x * x + y * y + z * z + w * w
-    s = 2.0 / n
-    return np.array([
-        [1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
-        [s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w)],
-        [s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y)],
-    ])
+    """Rotation matrix of an xyzw quaternion (scipy order); the closed form lives in companion/frames.py."""
+    return R_from_quat_wxyz((q[3], q[0], q[1], q[2]))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
