@@ -50,6 +50,7 @@ import asyncio
 import bisect
 import contextlib
 import functools
+import json
 import math
 import threading
 import time
@@ -61,6 +62,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.app.config import LinkConfig
+from companion.app.envelope import SetpointEnvelope
 from companion.frames import R_from_quat_wxyz
 
 
@@ -103,6 +105,14 @@ class CommandTimeout(LinkError):
 
 class LinkLost(LinkError):
     pass
+
+
+class SetpointRejected(LinkError):
+    """Upstream produced a setpoint that must never leave the app (non-finite): nothing was sent."""
+
+
+class WrongAutopilot(ConnectFailed):
+    """Heard an autopilot, but not the configured system (link.system_id)."""
 
 
 # -------------------------------------------------------------------------------------- samples
@@ -185,6 +195,32 @@ class TruthForLog:
     t_rx: float
 
 
+MAX_BODY_RATE = 15.0  # rad/s (860 deg/s): faster than any quad this app flies; a bigger jump is not a rotation
+JUMP_MARGIN = 0.35  # rad: estimator resets, jitter of the sample times
+
+
+def attitude_problem(q: list[Any], t_ms: int, prev_q: np.ndarray | None, prev_t_ms: int | None) -> str | None:
+    """Why an attitude sample cannot be PX4's estimate (None: plausible).
+
+    Non-finite or non-unit quaternions, vehicle time running backwards (a spoofer's clock, or an
+    autopilot reboot in flight) and rotations faster than MAX_BODY_RATE since the last accepted sample.
+    """
+    if len(q) != 4 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in q):
+        return f"non-finite quaternion {q}"
+    n = math.sqrt(sum(float(v) * float(v) for v in q))
+    if not 0.9 <= n <= 1.1:
+        return f"quaternion norm {n:.3f} (not a rotation)"
+    if prev_t_ms is not None and t_ms < prev_t_ms:
+        return f"vehicle time went back from {prev_t_ms} to {t_ms} ms"
+    if prev_q is not None and prev_t_ms is not None:
+        dot = abs(float(np.dot(np.asarray(q, float) / n, prev_q)))
+        angle = 2.0 * math.acos(min(1.0, dot))
+        dt = (t_ms - prev_t_ms) * 1e-3
+        if angle > MAX_BODY_RATE * dt + JUMP_MARGIN:
+            return f"attitude jumped {math.degrees(angle):.0f} deg in {dt * 1e3:.0f} ms"
+    return None
+
+
 class SetpointLike(Protocol):
     roll_deg: float
     pitch_deg: float
@@ -213,12 +249,24 @@ class VehicleLink:
         hover_thrust_fallback: float = 0.5,
         thrust_min: float = 0.1,
         setpoint_timeout: float = 0.5,
+        max_tilt_deg: float = 50.0,
+        reject_limit: int = 5,
         on_event: Callable[[str, dict[str, Any]], None] | None = None,
     ) -> None:
         self.cfg = link if link is not None else LinkConfig()
         self._hover_fallback = float(hover_thrust_fallback)
         self._thrust_min = float(thrust_min)
         self._setpoint_timeout = float(setpoint_timeout)
+        self.envelope = SetpointEnvelope(max_tilt_deg, thrust_min)
+        self._clamps = 0
+        self._last_clamp_event = -math.inf
+        self._reject_limit = int(reject_limit)
+        self._rejects: deque[float] = deque(maxlen=1000)  # monotonic times of rejected telemetry samples
+        self._invalid_reported = False
+        self._att_t_ms: int | None = None  # vehicle time of the last accepted attitude
+        self._event_decoder: Any = None
+        self._event_seq: int | None = None
+        self.px4_events: list[Any] = []  # decoded PX4 events (companion.app.px4events.Px4Event)
         self._on_event = on_event
         self.events: list[tuple[float, str, dict[str, Any]]] = []
         self.hover_thrust_source = "config"
@@ -230,6 +278,7 @@ class VehicleLink:
         self._offboard: Any = None
         self._telemetry: Any = None
         self._param: Any = None
+        self._direct: Any = None
         self._tasks: list[asyncio.Task] = []
         self._inflight: set[asyncio.Future] = set()
         self._closed = False
@@ -265,6 +314,8 @@ class VehicleLink:
             hover_thrust_fallback=cfg.airframe.hover_thrust,
             thrust_min=cfg.airframe.thrust_min,
             setpoint_timeout=cfg.safety.perception_stall_timeout,
+            max_tilt_deg=cfg.airframe.max_tilt,
+            reject_limit=cfg.safety.telemetry_reject_limit,
             on_event=on_event,
         )
 
@@ -364,6 +415,12 @@ class VehicleLink:
         except TimeoutError:
             raise CommandTimeout(f"{what}: no answer within {timeout:.1f} s") from None
 
+    async def _reason_soon(self, wait: float = 0.5) -> None:
+        """A refusal's reason comes as an event or STATUSTEXT beside the ACK, not always before it."""
+        deadline = time.monotonic() + wait
+        while self._status_text is None and time.monotonic() < deadline:
+            await asyncio.sleep(self.POLL)
+
     def _why(self) -> str:
         return f" (autopilot says: {self._status_text})" if self._status_text else ""
 
@@ -392,24 +449,36 @@ class VehicleLink:
     async def connect(self, url: str | None = None, timeout: float | None = None) -> None:
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkConnectionError
         from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.offboard import OffboardAsync
         from mavsdk.asyncio.plugins.param import ParamAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+        from companion.app.config import all_interfaces_reason
+        from companion.app.px4events import EventDecoder
 
         url = url or self.cfg.url
         timeout = self.cfg.connect_timeout if timeout is None else timeout
         if self._mavsdk is not None:
             raise ConnectFailed(f"connect {url}: this link is already connected (make a new VehicleLink)")
+        exposure = all_interfaces_reason(url)
+        if exposure is not None:
+            if not self.cfg.allow_all_interfaces:
+                raise ConnectFailed(f"connect {url}: refused, the URL {exposure} "
+                                    "(link.allow_all_interfaces is false; use udpin://127.0.0.1:PORT)")
+            self._emit("exposed", url=url, why=exposure)
+        try:
+            self._event_decoder = EventDecoder.load(self.cfg.events_metadata or None)
+        except (OSError, ValueError) as e:  # events are then logged by id only
+            self._emit("events_metadata_unreadable", path=self.cfg.events_metadata, error=str(e))
         self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
         try:
             await self._call(f"open {url}", lambda: self._mavsdk.add_any_connection(url), timeout)
         except MavsdkConnectionError as e:
             raise ConnectFailed(f"cannot open connection {url!r}: {e}") from None
-        system = await self._call(f"find an autopilot on {url}",
-                                  lambda: self._mavsdk.first_autopilot(timeout), timeout + 1.0)
-        if system is None:
-            raise ConnectFailed(f"no autopilot heard on {url} within {timeout:.1f} s")
+        system = await self._find_autopilot(url, timeout)
         self._system = system
+        self._direct = MavlinkDirectAsync(system)
         self._action = ActionAsync(system)
         self._offboard = OffboardAsync(system)
         self._telemetry = TelemetryAsync(system)
@@ -426,10 +495,34 @@ class VehicleLink:
             except Exception as e:  # a refused rate is not fatal
                 self._emit("rate_refused", stream=name, error=str(e))
 
+    async def _find_autopilot(self, url: str, timeout: float) -> Any:
+        """The autopilot with MAVLink system id ``link.system_id``; any other system is ignored."""
+        want = self.cfg.system_id
+        deadline = time.monotonic() + timeout
+        heard: set[int] = set()
+        while True:
+            left = deadline - time.monotonic()
+            first = await self._call(f"find an autopilot on {url}",
+                                     functools.partial(self._mavsdk.first_autopilot, max(min(left, 1.0), 0.0)),
+                                     left + 2.0)
+            if first is not None:
+                for sys_ in await self._mavsdk.get_systems():
+                    sid = await sys_.get_system_id()
+                    if sid == want and await sys_.has_autopilot():
+                        return sys_
+                    heard.add(sid)
+            if time.monotonic() >= deadline:
+                if heard:
+                    raise WrongAutopilot(f"no autopilot with system id {want} (link.system_id) on {url} within "
+                                         f"{timeout:.1f} s; heard system(s) {sorted(heard)}")
+                raise ConnectFailed(f"no autopilot heard on {url} within {timeout:.1f} s")
+            await asyncio.sleep(self.POLL if first is not None else 0.0)
+
     def _start_telemetry(self) -> None:
         tel = self._telemetry
         streams: list[tuple[str, Callable[[], Any], Callable[[Any], None]]] = [
-            ("attitude", tel.subscribe_attitude_quaternion, self._on_attitude),
+            ("attitude", lambda: self._direct.subscribe_message("ATTITUDE_QUATERNION"), self._on_attitude_msg),
+            ("events", lambda: self._direct.subscribe_message("EVENT"), self._on_event_msg),
             ("imu", tel.subscribe_imu, self._on_imu),
             ("flight_mode", tel.subscribe_flight_mode, self._on_mode),
             ("armed", tel.subscribe_armed, self._on_armed),
@@ -454,11 +547,70 @@ class VehicleLink:
         except Exception as e:  # report, don't crash the app
             self._emit("telemetry_error", stream=name, error=f"{type(e).__name__}: {e}")
 
-    def _on_attitude(self, q: Any) -> None:
+    def _from_autopilot(self, msg: Any) -> bool:
+        """Only the configured autopilot component (mavsdk already keeps other system ids apart)."""
+        return int(msg.component_id) == self.cfg.component_id
+
+    def _on_attitude_msg(self, msg: Any) -> None:
+        """ATTITUDE_QUATERNION as mavsdk received it (raw: mavsdk's telemetry takes it from any component)."""
+        if not self._from_autopilot(msg):
+            self._reject("attitude", f"from component {msg.component_id}, not {self.cfg.component_id}")
+            return
+        try:
+            f = json.loads(msg.fields_json)
+            q = [f["q1"], f["q2"], f["q3"], f["q4"]]
+            t_ms = int(f["time_boot_ms"])
+        except (ValueError, KeyError, TypeError) as e:
+            self._reject("attitude", f"unreadable ({type(e).__name__})")
+            return
+        self._on_attitude(q, t_ms)
+
+    def _on_attitude(self, q: list[Any], t_ms: int) -> None:
+        prev = self._attitude
+        why = attitude_problem(q, t_ms, None if prev is None else prev.q_wxyz, self._att_t_ms)
+        if why is not None:
+            self._reject("attitude", why)
+            return
         now = time.monotonic()
-        self._attitude = AttitudeSample(np.array([q.w, q.x, q.y, q.z]), q.timestamp_us * 1e-6, now)
+        qa = np.array(q, dtype=float)
+        self._attitude = AttitudeSample(qa / np.linalg.norm(qa), t_ms * 1e-3, now)
+        self._att_t_ms = t_ms
         self.attitude_history.add(now, self._attitude.q_wxyz)
         self._last_rx = now
+
+    def _reject(self, what: str, why: str) -> None:
+        """A telemetry sample the controller must not see: an event; a named abort when it persists."""
+        now = time.monotonic()
+        self._rejects.append(now)
+        recent = sum(1 for t in self._rejects if now - t <= 1.0)
+        if recent == 1 or recent % 50 == 0:  # the first of a burst, then every 50th: the log stays readable
+            self._emit("telemetry_rejected", what=what, why=why, recent=recent)
+        if recent >= self._reject_limit and not self._invalid_reported:
+            self._invalid_reported = True
+            self._emit("telemetry_invalid", what=what, why=why, count=recent)
+
+    def _on_event_msg(self, msg: Any) -> None:
+        """A PX4 event (1.15 reports through events, not STATUSTEXT): decoded, logged, the severe ones kept."""
+        if not self._from_autopilot(msg):
+            return
+        try:
+            fields = json.loads(msg.fields_json)
+        except ValueError:
+            return
+        seq = int(fields.get("sequence", -1))
+        if seq == self._event_seq:  # a resend
+            return
+        self._event_seq = seq
+        if self._event_decoder is None:
+            self._emit("px4_event", id=fields.get("id"), level="unknown", text=f"event {fields.get('id')}")
+            return
+        ev = self._event_decoder.decode(fields)
+        self.px4_events.append(ev)
+        if ev.level == "debug":
+            return
+        if ev.severe:
+            self._status_text = ev.text  # quoted by the next refused command ("autopilot says: ...")
+        self._emit("px4_event", name=ev.name, level=ev.level, text=ev.text)
 
     def _on_imu(self, m: Any) -> None:
         a, w = m.acceleration_frd, m.angular_velocity_frd
@@ -552,6 +704,32 @@ class VehicleLink:
                 raise CommandTimeout(f"read parameter {name}: no answer from the autopilot") from None
             raise CommandDenied(f"read parameter {name}: {e.result.name}") from None
 
+    async def read_param_int(self, name: str, timeout: float | None = None) -> int:
+        from mavsdk.asyncio.plugins.param import ParamError
+
+        self.check_link()
+        try:
+            return int(await self._call(f"read parameter {name}",
+                                        lambda: self._param.get_param_int(name), timeout))
+        except ParamError as e:
+            if e.result.name == "TIMEOUT":
+                raise CommandTimeout(f"read parameter {name}: no answer from the autopilot") from None
+            raise CommandDenied(f"read parameter {name}: {e.result.name}") from None
+
+    async def failsafe_params(self, timeout: float | None = None) -> dict[str, float | None]:
+        """PX4's failsafe parameters (companion/app/failsafe.py FAILSAFE_PARAMS); None for one it did not give."""
+        from companion.app.failsafe import FAILSAFE_PARAMS
+
+        out: dict[str, float | None] = {}
+        for name, kind in FAILSAFE_PARAMS.items():
+            try:
+                out[name] = float(await (self.read_param_int(name, timeout) if kind == "int"
+                                         else self.read_param(name, timeout)))
+            except LinkError as e:
+                self._emit("param_unread", name=name, error=str(e))
+                out[name] = None
+        return out
+
     async def hover_thrust(self, timeout: float | None = None) -> float:
         """PX4's MPC_THR_HOVER when the autopilot has it and it is plausible, else the config value."""
         try:
@@ -582,6 +760,7 @@ class VehicleLink:
         except ActionError as e:
             if e.result.name == "TIMEOUT":
                 raise CommandTimeout(f"arm: no answer from the autopilot{self._why()}") from None
+            await self._reason_soon()
             raise ArmDenied(f"arm refused by the autopilot: {e.result.name}{self._why()}") from None
         await self._wait_until(lambda: self._armed is True, timeout, "arm: accepted but the vehicle is not armed",
                                ArmDenied)
@@ -658,14 +837,25 @@ class VehicleLink:
 
     # ---------------------------------------------------------------------------------- offboard
     def _validated(self, sp: SetpointLike) -> _Sp:
+        """The last-line envelope (companion/app/envelope.py): non-finite -> SetpointRejected, else clamped."""
         try:
             vals = (float(sp.roll_deg), float(sp.pitch_deg), float(sp.yaw_deg), float(sp.thrust))
         except (AttributeError, TypeError, ValueError):
-            raise ValueError(f"setpoint: need roll_deg, pitch_deg, yaw_deg, thrust numbers (got {sp!r})") from None
-        if not all(math.isfinite(v) for v in vals):
-            raise ValueError(f"setpoint: non-finite value refused (roll, pitch, yaw, thrust = {vals})")
-        roll, pitch, yaw, thrust = vals
-        return _Sp(roll, pitch, yaw, min(max(thrust, self._thrust_min), 1.0))
+            raise SetpointRejected(f"setpoint: need roll_deg, pitch_deg, yaw_deg, thrust numbers (got {sp!r})"
+                                   ) from None
+        try:
+            c = self.envelope.check(*vals)
+        except ValueError as e:
+            self._emit("envelope", action="refused", why=str(e))
+            raise SetpointRejected(str(e)) from None
+        if c.clamped:
+            now = time.monotonic()
+            self._clamps += 1
+            if now - self._last_clamp_event >= 1.0:  # one event a second at most, with the count since the last
+                self._emit("envelope", action="clamped", why=c.clamped, count=self._clamps)
+                self._clamps = 0
+                self._last_clamp_event = now
+        return _Sp(c.roll_deg, c.pitch_deg, c.yaw_deg, c.thrust)
 
     async def _send(self, sp: _Sp) -> None:
         from mavsdk.asyncio.plugins.offboard import Attitude

@@ -195,10 +195,18 @@ def test_drop_link_fires_failsafe_and_link_lost(sim: SimPX4, cfg: Config) -> Non
             assert not link.link_ok
             sim.drop_link(False)
             await link.wait_link_ok(5.0)
-            await link.wait_mode("HOLD", 5.0)
-            with pytest.raises(OffboardLost):  # and it never goes back to OFFBOARD by itself
+            # PX4's default (COM_OBL_RC_ACT 0, no RC): the fallback shows POSCTL, descends and lands.
+            assert any(e == "mode:POSCTL:failsafe" for _, e in sim.events)
+            with pytest.raises(OffboardLost):  # and the app never goes back to OFFBOARD by itself
                 await link.set_setpoint(sp)
-            assert sim.mode == "HOLD"
+            await link._wait_until(lambda: link.armed is False, 20.0, "auto-disarm after the fallback landing")
+            assert sim.landed and not sim.armed
+            # PX4 1.15 then shows Offboard again, disarmed, and refuses to arm until another mode is set.
+            await link.wait_mode("OFFBOARD", 3.0)
+            with pytest.raises(ArmDenied, match="Resolve system health failures first"):
+                await link.arm(timeout=3.0)
+            await link.hold()
+            await link._wait_until(lambda: not link._health_problems(), 5.0, "pre-flight checks pass again")
             assert [e for e in link.events if e[1] == "link_lost"]
             assert [e for e in link.events if e[1] == "link_restored"]
 
