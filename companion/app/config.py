@@ -53,13 +53,13 @@ class LinkConfig(Section):
         "", description="PX4 event metadata (all_events.json[.xz]); empty: the PX4 v1.15 file shipped with the app"
     )
 
-    @model_validator(mode="after")
-    def _local_only(self) -> LinkConfig:
+    def exposure_problem(self) -> str | None:
+        """The one-line reason this link may not be used (checked across sections by companion.config.Config)."""
         why = all_interfaces_reason(self.url)
         if why is not None and not self.allow_all_interfaces:
-            raise ValueError(f"url {self.url!r} {why}: anyone on the network could command the vehicle "
-                             "(use udpin://127.0.0.1:PORT or a serial link, or set link.allow_all_interfaces: true)")
-        return self
+            return (f"link.url {self.url!r} {why}: anyone on the network could command the vehicle "
+                    "(use udpin://127.0.0.1:PORT or a serial link, or set link.allow_all_interfaces: true)")
+        return None
 
 
 class SafetyConfig(Section):

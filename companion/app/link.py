@@ -107,7 +107,7 @@ class LinkLost(LinkError):
     pass
 
 
-class SetpointRejected(LinkError):
+class SetpointRejected(LinkError, ValueError):
     """Upstream produced a setpoint that must never leave the app (non-finite): nothing was sent."""
 
 
@@ -298,6 +298,8 @@ class VehicleLink:
         self._last_rx = -math.inf
         self._lost = False
 
+        self._mode_reports = 0
+        self._offboard_requested = False  # OFFBOARD asked for and not stopped since (PX4 may be in it unseen)
         self._offboard_active = False
         self._offboard_end_reason: str | None = None
         self._latest_sp: _Sp | None = None
@@ -442,8 +444,17 @@ class VehicleLink:
                 self.check_link()
             await asyncio.sleep(self.POLL)
 
-    async def wait_mode(self, mode: str, timeout: float) -> None:
-        await self._wait_until(lambda: self._flight_mode == mode, timeout, f"vehicle did not enter {mode}")
+    async def wait_mode(self, mode: str, timeout: float, after: int | None = None) -> None:
+        """Until PX4's heartbeat shows ``mode``; with ``after`` (a ``mode_reports`` count taken when the
+        command was sent) only a heartbeat sent after the command counts: a stale one is no confirmation."""
+        n0 = -1 if after is None else after
+        await self._wait_until(lambda: self._mode_reports > n0 and self._flight_mode == mode, timeout,
+                               f"vehicle did not enter {mode}")
+
+    @property
+    def mode_reports(self) -> int:
+        """Heartbeats (mode reports) received so far."""
+        return self._mode_reports
 
     # ---------------------------------------------------------------------------- connection
     async def connect(self, url: str | None = None, timeout: float | None = None) -> None:
@@ -556,6 +567,9 @@ class VehicleLink:
         if not self._from_autopilot(msg):
             self._reject("attitude", f"from component {msg.component_id}, not {self.cfg.component_id}")
             return
+        # From the autopilot's ids: the link is alive even if the sample is rejected below (that is
+        # TELEMETRY_INVALID's business, not LINK_LOST's).
+        self._last_rx = time.monotonic()
         try:
             f = json.loads(msg.fields_json)
             q = [f["q1"], f["q2"], f["q3"], f["q4"]]
@@ -606,6 +620,10 @@ class VehicleLink:
             return
         ev = self._event_decoder.decode(fields)
         self.px4_events.append(ev)
+        if ev.name == "commander_disarmed_by":
+            # PX4 sends the event at once; its heartbeat shows the disarm up to 1 s later. A vehicle that
+            # just lost its motors must not get that second of setpoints.
+            self._on_armed(False)
         if ev.level == "debug":
             return
         if ev.severe:
@@ -619,6 +637,7 @@ class VehicleLink:
                               m.timestamp_us * 1e-6, time.monotonic())
 
     def _on_mode(self, mode: Any) -> None:
+        self._mode_reports += 1  # one per HEARTBEAT: "seen after the command" means a later count
         name = getattr(mode, "name", str(mode))
         if name != self._flight_mode:
             old, self._flight_mode = self._flight_mode, name
@@ -776,6 +795,7 @@ class VehicleLink:
             raise ValueError(f"takeoff: altitude must be a positive number of metres (got {altitude_m})")
         try:
             await self._call("set take-off altitude", lambda: self._action.set_takeoff_altitude(altitude_m))
+            n0 = self._mode_reports
             await self._call("takeoff", self._action.takeoff)
         except ActionError as e:
             if e.result.name == "TIMEOUT":
@@ -783,7 +803,9 @@ class VehicleLink:
             raise TakeoffFailed(f"takeoff refused by the autopilot: {e.result.name}{self._why()}") from None
         self._emit("takeoff", altitude=altitude_m)
         # PX4 switches TAKEOFF -> HOLD at the target altitude; anything else means it gave up.
-        await self._wait_until(lambda: self._flight_mode == "TAKEOFF" or self._landed == "IN_AIR",
+        # Judged only on heartbeats sent after the command (PX4: 1 Hz), never on the HOLD it showed before.
+        await self._wait_until(lambda: self._mode_reports > n0 and (self._flight_mode == "TAKEOFF"
+                                                                    or self._landed == "IN_AIR"),
                                min(timeout, 5.0), "takeoff: vehicle never entered TAKEOFF", TakeoffFailed)
 
         def done() -> bool:
@@ -806,6 +828,8 @@ class VehicleLink:
         self.check_link()
         timeout = self.cfg.command_timeout if timeout is None else timeout
         self._stop_offboard_tasks(f"{what} requested")
+        self._offboard_requested = False
+        n0 = self._mode_reports
         try:
             await self._call(what, fn, timeout)
         except ActionError as e:
@@ -813,7 +837,7 @@ class VehicleLink:
                 raise CommandTimeout(f"{what}: no answer from the autopilot{self._why()}") from None
             raise CommandDenied(f"{what} refused by the autopilot: {e.result.name}{self._why()}") from None
         self._emit(what)
-        await self.wait_mode(mode, timeout)
+        await self.wait_mode(mode, timeout, after=n0)
 
     async def wait_landed_and_disarm(self, timeout: float | None = None) -> None:
         """Wait for touchdown and PX4's auto-disarm (COM_DISARM_LAND); disarm ourselves if it doesn't."""
@@ -873,6 +897,7 @@ class VehicleLink:
         sp = self._validated(first_setpoint)
         self._latest_sp = sp
         self._last_fresh = time.monotonic()
+        self._offboard_requested = True
         await self._send(sp)
         await asyncio.sleep(0.2)  # PX4 wants a setpoint stream before it accepts OFFBOARD
         self._status_text = None
@@ -882,7 +907,8 @@ class VehicleLink:
             if e.result.name == "TIMEOUT":
                 raise CommandTimeout(f"start offboard: no answer from the autopilot{self._why()}") from None
             raise OffboardDenied(f"offboard refused: {e.result.name}{self._why()}") from None
-        await self._wait_until(lambda: self._flight_mode == "OFFBOARD", timeout,
+        n0 = self._mode_reports
+        await self._wait_until(lambda: self._mode_reports > n0 and self._flight_mode == "OFFBOARD", timeout,
                                "offboard accepted but the vehicle is not in OFFBOARD", OffboardDenied)
         self._offboard_active = True
         self._offboard_end_reason = None
@@ -1001,9 +1027,13 @@ class VehicleLink:
 
         timeout = self.cfg.command_timeout if timeout is None else timeout
         self._stop_offboard_tasks("stopped by the app")
-        if self._flight_mode != "OFFBOARD":
+        requested, self._offboard_requested = self._offboard_requested, False
+        # PX4 may be in OFFBOARD before its 1 Hz heartbeat says so: stop whenever we asked for it, unless the
+        # vehicle is seen in a mode that is not ours (the pilot's: never override it).
+        if self._flight_mode != "OFFBOARD" and not (requested and self._flight_mode in ("HOLD", "TAKEOFF", None)):
             return
         self.check_link()
+        n0 = self._mode_reports
         try:
             await self._call("stop offboard", self._offboard.stop, timeout)
         except OffboardError as e:
@@ -1011,7 +1041,7 @@ class VehicleLink:
                 raise CommandTimeout(f"stop offboard: no answer from the autopilot{self._why()}") from None
             raise CommandDenied(f"stop offboard refused: {e.result.name}{self._why()}") from None
         self._emit("offboard_stopped")
-        await self.wait_mode("HOLD", timeout)
+        await self.wait_mode("HOLD", timeout, after=n0)
 
     # ------------------------------------------------------------------------------- teardown
     async def close(self, timeout: float | None = None) -> None:
@@ -1024,7 +1054,7 @@ class VehicleLink:
             return
         self._closed = True
         timeout = self.cfg.command_timeout + 2.0 if timeout is None else timeout
-        if self._offboard_active and self.link_ok and self._flight_mode == "OFFBOARD":
+        if (self._offboard_active or self._offboard_requested) and self.link_ok:
             with contextlib.suppress(Exception):
                 await self.stop_offboard(min(timeout, 3.0))
         self._stop_offboard_tasks("link closed")

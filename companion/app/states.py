@@ -83,6 +83,7 @@ class Reason(enum.IntEnum):
     DISARMED = 27  # the vehicle was disarmed in flight by someone else
     SETPOINT_INVALID = 28  # upstream produced a non-finite setpoint: nothing sent, handed over
     TELEMETRY_INVALID = 29  # attitude/telemetry rejected (non-finite, out of range, spoofed) persistently
+    AUTOPILOT_MODE = 30  # PX4 changed the mode on its own (failsafe land, return, ...): not the pilot, not us
 
 
 _NORMAL: dict[State, frozenset[State]] = {

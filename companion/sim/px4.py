@@ -19,10 +19,10 @@ Public API (names are stable; the flight app and its tests rely on them)::
     .param(name) / .set_param(name, value)
     .setpoint_count, .last_setpoint() -> (t, q_xyzw ENU/FLU, thrust), .stats(), .monotonic_of(t_sim)
     switches: .deny_arming, .deny_offboard, .fail_preflight (bool attributes), .drop_link(on), .silence_commands(on),
-              .pilot_takeover(mode="POSCTL")
+              .pilot_takeover(mode="POSCTL"), .force_disarm(), .corrupt_attitude(on)
     process stdin (one reply line each): deny_arming 0|1, deny_offboard 0|1, fail_preflight 0|1,
               drop 0|1, silence 0|1,
-              takeover MODE, param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit
+              takeover MODE, kill, nan_attitude 0|1, param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit
 
 Events (``what`` strings, ``kind:detail``): ``mode:<MODE>:<why>`` (why = command, failsafe,
 takeoff_done, pilot, offboard_loss_landed), ``mode_denied:<main>.<sub>``, ``arm``, ``disarm:<why>`` (command,
@@ -327,6 +327,7 @@ class SimPX4:
         self.deny_offboard = False
         self.fail_preflight = False  # SYS_STATUS reports the preflight checks failed; arming is refused
         self._obl_landed = False  # landed and disarmed by the offboard-loss fallback: refuses to arm (PX4 1.15)
+        self._nan_attitude = False
         self._was_tko_detected = False
         self._obl_fallback = False  # flying the no-RC offboard-loss fallback (descend and land, shown as POSCTL)
         self._event_seq = 0
@@ -493,6 +494,17 @@ class SimPX4:
         """On: COMMAND_LONG/COMMAND_INT are received but neither executed nor acknowledged."""
         with self._lock:
             self._silenced = on
+
+    def corrupt_attitude(self, on: bool) -> None:
+        """On: ATTITUDE_QUATERNION carries NaN (an estimator failure, or a corrupted link)."""
+        with self._lock:
+            self._nan_attitude = on
+
+    def force_disarm(self) -> None:
+        """The kill switch (or a forced disarm from a ground station): motors off wherever the vehicle is."""
+        with self._lock:
+            if self._armed:
+                self._disarm("force")
 
     def pilot_takeover(self, mode: str = "POSCTL") -> None:
         """The pilot flips the mode switch: PX4 leaves OFFBOARD and holds position (POSCTL/HOLD) or lands."""
@@ -937,7 +949,8 @@ class SimPX4:
             wq = self._sensors.attitude_wxyz_ned_frd(s.q)
             rates = flu_to_frd(s.omega)
             if mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION in due:
-                self._send(self._mav.attitude_quaternion_encode(ms, *wq, *rates, [0.0, 0.0, 0.0, 0.0]))
+                q_out = (math.nan, math.nan, math.nan, math.nan) if self._nan_attitude else wq
+                self._send(self._mav.attitude_quaternion_encode(ms, *q_out, *rates, [0.0, 0.0, 0.0, 0.0]))
             if mavlink.MAVLINK_MSG_ID_ATTITUDE in due:
                 roll, pitch, yaw = (math.radians(a) for a in euler_ned_deg_from_R(R_from_quat_wxyz(wq)))
                 self._send(self._mav.attitude_encode(ms, roll, pitch, yaw, *rates))
@@ -986,7 +999,8 @@ class SimPX4:
 # ------------------------------------------------------------------------------ process entry point
 _SWITCH_HELP = (
     "stdin commands: deny_arming 0|1, deny_offboard 0|1, fail_preflight 0|1, drop 0|1, silence 0|1, "
-    "takeover [POSCTL|HOLD|LAND], param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit"
+    "takeover [POSCTL|HOLD|LAND], kill, nan_attitude 0|1, param NAME VALUE, state, events, "
+    "wait_event PREFIX SECONDS, quit"
 )
 
 
@@ -1006,6 +1020,10 @@ def _stdin_command(sim: SimPX4, line: str) -> str:
             sim.drop_link(args[0] == "1")
         elif cmd == "silence":
             sim.silence_commands(args[0] == "1")
+        elif cmd == "nan_attitude":
+            sim.corrupt_attitude(args[0] == "1")
+        elif cmd == "kill":
+            sim.force_disarm()
         elif cmd == "takeover":
             sim.pilot_takeover(args[0] if args else "POSCTL")
         elif cmd == "param":

@@ -223,11 +223,12 @@ def test_pilot_takeover_is_seen_and_never_overridden(sim: SimPX4, cfg: Config) -
                 await link.set_setpoint(sp)
                 await asyncio.sleep(1 / 30)
             sim.pilot_takeover("POSCTL")
-            await link.wait_mode("POSCTL", 3.0)
+            # The control loop goes on (PX4 shows the change in its next 1 Hz heartbeat) until the link refuses.
             with pytest.raises(OffboardLost, match="now POSCTL"):
-                for _ in range(30):
+                for _ in range(60):
                     await link.set_setpoint(sp)
                     await asyncio.sleep(1 / 30)
+            assert link.flight_mode == "POSCTL"
             await link.stop_offboard()  # must not command HOLD over the pilot
             await asyncio.sleep(1.0)
             assert sim.mode == "POSCTL"
@@ -269,9 +270,13 @@ def test_bad_setpoints_and_urls_are_one_line_errors(sim: SimPX4, cfg: Config) ->
         bad = VehicleLink.from_config(cfg)
         from companion.app.link import ConnectFailed
 
-        with pytest.raises(ConnectFailed, match=r"no autopilot heard on udpout://127\.0\.0\.1:9 within 0\.5 s"):
-            await bad.connect("udpout://127.0.0.1:9", timeout=0.5)
+        with pytest.raises(ConnectFailed, match=r"no autopilot heard on udpin://127\.0\.0\.1:9 within 0\.5 s"):
+            await bad.connect("udpin://127.0.0.1:9", timeout=0.5)
         await bad.close()
+        exposed = VehicleLink.from_config(cfg)
+        with pytest.raises(ConnectFailed, match=r"refused, the URL makes mavsdk bind 0\.0\.0\.0"):
+            await exposed.connect("udpout://127.0.0.1:9", timeout=0.5)
+        await exposed.close()
 
     run(body, 25)
 
