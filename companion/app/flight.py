@@ -153,7 +153,8 @@ class FlightApp:
         """
         if kind in ("px4_event", "status_text"):
             level = str(detail.get("level", detail.get("type", "")))
-            severe = level.lower() in ("emergency", "alert", "critical", "error", "warning")
+            severe = bool(detail.get("severe", level.lower() in ("emergency", "alert", "critical", "error",
+                                                                 "warning")))
             self.log.event(f"PX4 {level}: {detail.get('text')}", "warn" if severe else "info")
             if severe and self.stderr is not None:
                 print(f"companion: PX4 {level}: {detail.get('text')}", file=self.stderr, flush=True)

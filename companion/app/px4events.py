@@ -39,11 +39,12 @@ class Px4Event:
     level: str  # one of LEVELS
     text: str  # the message with its arguments filled in
     sequence: int
+    group: str = "default"  # "arming_check" and "health": PX4's periodic check reports (not news)
 
     @property
     def severe(self) -> bool:
-        """Warnings and worse go to stderr too."""
-        return LEVELS.index(self.level) <= LEVELS.index("warning")
+        """Warnings and worse that are news (not a line of PX4's periodic check report)."""
+        return LEVELS.index(self.level) <= LEVELS.index("warning") and self.group not in ("arming_check", "health")
 
 
 class EventDecoder:
@@ -56,9 +57,9 @@ class EventDecoder:
             ns = comp.get("namespace", "")
             for ename, enum in comp.get("enums", {}).items():
                 self._enums[f"{ns}::{ename}"] = enum
-            for group in comp.get("event_groups", {}).values():
+            for gname, group in comp.get("event_groups", {}).items():
                 for sid, ev in group.get("events", {}).items():
-                    self._events[(int(cid) << 24) | int(sid)] = ev
+                    self._events[(int(cid) << 24) | int(sid)] = {**ev, "group": gname}
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> EventDecoder:
@@ -115,7 +116,7 @@ class EventDecoder:
             return str(v)
 
         text = _TAG.sub("", _PLACEHOLDER.sub(fill, ev.get("message", ""))).replace("\\", "")
-        return Px4Event(eid, ev.get("name", f"event_{eid}"), level, text, seq)
+        return Px4Event(eid, ev.get("name", f"event_{eid}"), level, text, seq, ev.get("group", "default"))
 
     def event_id(self, name: str) -> int:
         """The id of the event called ``name`` (the simulated PX4 sends PX4's own ids)."""

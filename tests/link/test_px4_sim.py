@@ -36,7 +36,13 @@ def test_offboard_needs_setpoints_and_fails_safe_when_they_stop(sim: SimPX4, gcs
     gcs.command(*OFFBOARD)
     assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE) == mavlink.MAV_RESULT_ACCEPTED
     # The next 1 Hz heartbeat (none extra on the change, as PX4) reports it the PX4 way: custom_mode = 6 << 16.
-    hb = gcs.recv(lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode == 6 << 16, 3.0)
+    # Setpoints keep coming meanwhile (else the offboard-loss failsafe may beat the heartbeat).
+    hb = None
+    for _ in range(60):
+        gcs.attitude_setpoint(LEVEL, 0.2)
+        hb = gcs.recv(lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode == 6 << 16, 0.05)
+        if hb is not None:
+            break
     assert hb is not None and hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4 and hb.get_srcComponent() == 1

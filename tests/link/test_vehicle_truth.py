@@ -123,7 +123,10 @@ def test_attitude_plausibility_rules() -> None:
     assert "norm 2.000" in attitude_problem([2.0, 0.0, 0.0, 0.0], 1000, None, None)
     assert "went back from 1000 to 123 ms" in attitude_problem([1.0, 0.0, 0.0, 0.0], 123, level, 1000)
     flipped = [0.0, 1.0, 0.0, 0.0]  # 180 deg roll in 20 ms
-    assert "jumped 180 deg in 20 ms" in attitude_problem(flipped, 1020, level, 1000)
+    assert "tilt jumped 180 deg in 20 ms" in attitude_problem(flipped, 1020, level, 1000)
+    # A yaw step (PX4's EKF resets its heading in flight) is a real estimate, not a jump.
+    yawed = [math.cos(math.radians(23.5)), 0.0, 0.0, math.sin(math.radians(23.5))]  # 47 deg yaw
+    assert attitude_problem(yawed, 1020, level, 1000) is None
     # The same 180 deg over 2 s is a (fast) rotation, not a jump.
     assert attitude_problem(flipped, 3000, level, 1000) is None
     # q and -q are the same rotation.
