@@ -33,6 +33,7 @@ from companion.configbase import (
     parse_override,
     read_yaml,
 )
+from companion.hover import HoverConfig
 from companion.sim.config import SimConfig
 
 G = 9.81  # m/s^2, the paper's |g|
@@ -155,6 +156,7 @@ class Config(Section):
     app: AppConfig = AppConfig()
     log: LogConfig = LogConfig()
     sim: SimConfig = SimConfig()
+    hover: HoverConfig = HoverConfig()  # in-flight hover-thrust estimate (companion/hover.py)
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Config:

@@ -27,6 +27,7 @@ import numpy as np
 
 from companion.configbase import deep_merge
 from companion.frames import R_enu_flu_from_ned_frd
+from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.sim.camera import GeometricCamera
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
@@ -119,6 +120,14 @@ def _make_controller(cfg: Config, kind: ControllerKind, params: QuadParams):
     return PNController.from_config(cfg)
 
 
+def _hover_estimator(cfg: Config, spec: RunSpec, ctrl: Any, ss: np.random.SeedSequence) -> tuple | None:
+    """(estimator, its own IMU) when hover.estimate is on; its own noise stream leaves the others' unchanged."""
+    if not cfg.hover.estimate or spec.controller == "baseline":
+        return None
+    return (HoverThrustEstimator(ctrl.p.hover_thrust, cfg.hover),
+            Sensors(cfg.sim.sensors, np.random.default_rng(ss.spawn(1)[0])))
+
+
 def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     """Fly one run to its end (crossing, fov_lost, ground, timeout); deterministic for spec.seed."""
     if spec.motion not in MOTIONS:
@@ -147,6 +156,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     sensors = Sensors(sim.sensors, rng_sens)
     wind = Wind(sim.wind, rng_wind)
     ctrl = _make_controller(cfg, spec.controller, params)
+    hover = _hover_estimator(cfg, spec, ctrl, ss)
     scorer = PlaneCrossingScorer(gate.normal)
 
     dt = 1.0 / cfg.camera.rate
@@ -239,6 +249,11 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.accel.append(sensors.imu(quad.specific_force_body(), s.omega).accel)
             traj.baro.append(sensors.baro_altitude(float(s.p[2])))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+        if hover is not None:  # in-flight hover-thrust estimate (companion/hover.py), hover.estimate=true
+            est, imu = hover
+            acc = imu.imu(quad.specific_force_body(), quad.state.omega).accel  # FLU: z is the thrust axis
+            if est.update(t + dt, thrust_cmd, float(acc[2])) is not None:
+                use_hover_thrust(ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight)
         k += 1
     outcome.top_speed = top_speed
     return RunResult(spec, outcome, scn.distance, scn.angle, scn.altitude, k * dt, frames, frames_with_box, traj,
