@@ -7,11 +7,14 @@ camera model (intrinsics, distortion, mount). Two box models:
   position into the camera frame"): the box is centred on the projected gate centre, its size
   is the rim's pixel extent;
 * ``clip=True`` (detector-like): the box is the rim's extent clipped to the image, so a ring
-  cut by the image border gives a biased centre, as a real detector's box would.
+  cut by the image border gives a biased centre, as a real detector's box would; a ring whose
+  centre is outside the image but whose rim reaches into it still gives a (partial) box, and a
+  ring around the camera near the pass fills the image.
 
 The rim's extent is exact (closed form for the projected circle) when the whole ring is in
 front of an undistorted camera, else from 32 rim samples (cv2.projectPoints with distortion).
-No box when the gate centre is behind the camera or outside the image (the FOV check), when
+No box when the gate centre is behind the camera or outside the image (the FOV check; with
+``clip``: when no part of the rim is in the image), when
 the box is smaller than ``min_box`` pixels, or when the frame is dropped. Pixel noise is
 added to the box centre and size. Latency is the runner's job (it delivers the box of a
 frame captured at t at t + delay).
@@ -128,7 +131,7 @@ class GeometricCamera:
             cz, az, bz = float(c[2]), float(a[2]), float(b[2])
             cu = fx * float(c[0]) / cz + cx
             cv = fy * float(c[1]) / cz + cy
-            if not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
+            if not self.clip and not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
                 return None  # the FOV check: the gate centre must be in the image
             u0, u1 = _ratio_extremes(fx * float(c[0]) + cx * cz, fx * float(a[0]) + cx * az,
                                      fx * float(b[0]) + cx * bz, cz, az, bz)
@@ -141,7 +144,7 @@ class GeometricCamera:
                 return None
             px = self.project(np.vstack((c[None, :], front)))
             cu, cv = float(px[0, 0]), float(px[0, 1])
-            if not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
+            if not self.clip and not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
                 return None
             lo, hi = px[1:].min(axis=0), px[1:].max(axis=0)
             u0, v0, u1, v1 = float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
