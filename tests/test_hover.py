@@ -43,7 +43,7 @@ def test_converges_to_the_true_hover_thrust_from_25_percent_off():
 @settings(max_examples=60, deadline=None)
 @given(hover_true=st.floats(0.3, 0.8), offset=st.floats(-0.35, 0.35), tau=st.floats(0.0, 0.1))
 def test_noise_free_data_give_the_answer(hover_true, offset, tau):
-    hover0 = hover_true * (1 + offset)
+    hover0 = min(hover_true * (1 + offset), 0.9)
     est = HoverThrustEstimator(hover0, HoverConfig(tau_thrust=tau, max_change=0.6))
     h = _fly(est, hover_true, 40, None, tau=max(tau, 1e-6))
     assert h[-1] == pytest.approx(hover_true, rel=0.005)
