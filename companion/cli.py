@@ -15,6 +15,7 @@ COMMAND_MODULES = (
     "companion.evaluation",
     "companion.replay",
     "companion.app.main",
+    "perception.evaluate",  # companion perception eval
 )
 
 
