@@ -36,7 +36,7 @@ import numpy as np
 
 from companion.config import add_config_arguments, config_as_dict, config_from_args
 from companion.sim.runner import CAMERAS, RunResult, RunSpec, run_once, with_overrides
-from companion.sim.scoring import aggregate, rkey
+from companion.sim.scoring import aggregate, rkey, setpoint_metrics
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -300,12 +300,14 @@ def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0,
     results = run_jobs(suite.jobs, suite.radii, n_jobs, progress, desc=name)
     wall = time.perf_counter() - t0
     groups, md = suite.report(results, suite.radii)
+    total = aggregate(results, suite.radii)
+    md += "\n\n" + setpoint_table(groups, total)
     sim_s = sum(r["sim_time_s"] for r in results)
     return {
         "suite": name,
         "seed": seed,
         "radii": suite.radii,
-        "total": aggregate(results, suite.radii),
+        "total": total,
         "groups": groups,
         "markdown": md,
         "paper": PAPER[name],
@@ -316,6 +318,19 @@ def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0,
         "config": config_as_dict(cfg),
         "runs": results,
     }
+
+
+def setpoint_table(groups: dict[str, dict], total: dict) -> str:
+    """Commanded attitude per group (companion.metrics over each run's engagement): the largest tilt over
+    the runs, and the mean roll-setpoint oscillation (RMS rate; amplitude and frequency of the dominant line)."""
+    lines = ["| Group | max tilt deg | roll-setpoint RMS rate deg/s | roll osc. amplitude deg | roll osc. Hz |",
+             "|---|---|---|---|---|"]
+    for name, g in [*groups.items(), ("total", total)]:
+        if "max_tilt_deg" not in g:
+            continue
+        lines.append(f"| {name} | {_fmt(g['max_tilt_deg'], 1)} | {_fmt(g['roll_osc_rms_rate_dps_mean'], 1)} | "
+                     f"{_fmt(g['roll_osc_amp_deg_mean'], 1)} | {_fmt(g['roll_osc_freq_hz_mean'], 2)} |")
+    return "\n".join(lines)
 
 
 # -- Bayesian tuning (paper IV-D) ----------------------------------------------------------------------
@@ -361,7 +376,7 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
         target = float(np.mean([run_reward(r, reward) for r in runs]))
         opt.register(params=params, target=target)
         history.append({"iteration": it, **params, "reward": target,
-                        "success_1m": float(np.mean([r["success"]["1.0"] for r in runs]))})
+                        "success_1m": float(np.mean([r["success"]["1.0"] for r in runs])), **setpoint_metrics(runs)})
     best = max(history, key=lambda h: h["reward"])
     md = ("| reward | k_pn ours (paper) | gamma_bar deg ours (paper) | mean reward | success 1 m |\n"
           f"|---|---|---|---|---|\n| R_{reward} | {best['k_pn']:.2f} ({PAPER_TUNED[reward]['k_pn']:.2f}) | "

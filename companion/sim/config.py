@@ -7,6 +7,8 @@ and drops, the gate motions and the initial conditions.
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from pydantic import Field
 
 from companion.configbase import (
@@ -48,7 +50,7 @@ class SimQuadConfig(Section):
 
 
 class WindConfig(Section):
-    mean: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
+    mean: list[Number] = Field(default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
                               description="constant wind, ENU m/s")
     gust_std: MetersPerSecond = Field(0.0, ge=0.0, le=30.0, description="gust std per axis, m/s")
     gust_tau: Seconds = Field(2.0, gt=0.0, le=100.0, description="gust correlation time (Gauss-Markov), s")
@@ -106,7 +108,8 @@ class ScenarioConfig(Section):
     altitude_max: Meters = Field(20.0, gt=0.5, le=500.0)
     gate_height_offset: Meters = Field(1.0, ge=0.0, le=50.0, description="gate centre +- this, m")
     visual_radius: Meters = Field(1.0, gt=0.05, le=20.0, description="radius of the ring the camera sees, m")
-    gate_radii: list[float] = Field(default_factory=lambda: [0.5, 1.0, 2.0], min_length=1)
+    gate_radii: list[Annotated[Number, Field(gt=0.0, le=100.0)]] = Field(
+        default_factory=lambda: [0.5, 1.0, 2.0], min_length=1, max_length=100)
     timeout: Seconds = Field(20.0, gt=0.1, le=600.0, description="run ends unscored after this, s")
     fov_timeout: Seconds = Field(1.0, gt=0.0, le=60.0, description="no box for this long: fov_lost, s")
 

@@ -17,6 +17,7 @@ their own explicit arguments.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
@@ -26,6 +27,7 @@ import numpy as np
 
 from companion.configbase import deep_merge
 from companion.frames import R_enu_flu_from_ned_frd
+from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.sim.camera import GeometricCamera
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
 from companion.sim.gates import MOTIONS, MotionKind
@@ -63,6 +65,8 @@ class Trajectory:
     gate: list[np.ndarray] = field(default_factory=list)
     mode: list[str] = field(default_factory=list)
     thrust: list[float] = field(default_factory=list)
+    roll_sp: list[float] = field(default_factory=list)  # the held attitude setpoint, NED/FRD Euler deg
+    pitch_sp: list[float] = field(default_factory=list)
     box: list[tuple[float, float, float, float] | None] = field(default_factory=list)
     demand_scale: list[float] = field(default_factory=list)
     lambda_dot: list[float] = field(default_factory=list)
@@ -84,12 +88,17 @@ class RunResult:
     frames: int
     frames_with_box: int
     trajectory: Trajectory | None = None
+    max_tilt_deg: float = math.nan  # largest commanded tilt over the engagement (companion.metrics)
+    roll_osc: Oscillation = NO_OSCILLATION  # roll-setpoint oscillation over the engagement
 
     def as_dict(self, radii: list[float]) -> dict[str, Any]:
         d = {**asdict(self.spec), "distance_m": self.distance, "angle_deg": self.angle,
              "altitude_m": self.altitude, "sim_time_s": self.sim_time, "frames": self.frames,
              "frames_with_box": self.frames_with_box}
         d.update(self.outcome.as_dict(radii))
+        # None, not NaN, for "too few setpoints": valid JSON, and equal results compare equal.
+        metrics = {"max_tilt_deg": self.max_tilt_deg, **self.roll_osc.as_dict()}
+        d.update({k: (v if math.isfinite(v) else None) for k, v in metrics.items()})
         return d
 
 
@@ -155,6 +164,10 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     outcome: RunOutcome | None = None
     mode = "init"
     last_out = None
+    roll_cmd = pitch_cmd = math.nan
+    sp_t: list[float] = []  # commanded attitude per control step, for the per-run metrics
+    sp_roll: list[float] = []
+    sp_pitch: list[float] = []
     k = 0
     while True:
         t = k * dt
@@ -204,6 +217,10 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             sp = out.setpoint
             q_cmd = matrix_to_quat(R_enu_flu_from_ned_frd(sp.R_ned_frd))
             thrust_cmd = sp.thrust
+            sp_t.append(t)
+            sp_roll.append(sp.roll_deg)
+            sp_pitch.append(sp.pitch_deg)
+            roll_cmd, pitch_cmd = sp.roll_deg, sp.pitch_deg
             mode = out.mode
             last_out = out
         if traj is not None:
@@ -213,6 +230,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.gate.append(g)
             traj.mode.append(mode)
             traj.thrust.append(thrust_cmd)
+            traj.roll_sp.append(roll_cmd)
+            traj.pitch_sp.append(pitch_cmd)
             traj.box.append(None if box is None else (box.cx, box.cy, box.w, box.h))
             traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
@@ -222,7 +241,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
     outcome.top_speed = top_speed
-    return RunResult(spec, outcome, scn.distance, scn.angle, scn.altitude, k * dt, frames, frames_with_box, traj)
+    return RunResult(spec, outcome, scn.distance, scn.angle, scn.altitude, k * dt, frames, frames_with_box, traj,
+                     max_tilt_deg(np.array(sp_roll), np.array(sp_pitch)),
+                     oscillation(np.array(sp_t), np.array(sp_roll)))
 
 
 def bench_sim(seconds: float = 60.0, cfg: Config | None = None) -> dict[str, float]:

@@ -169,3 +169,20 @@ def test_true_vrel_ablation_feeds_the_true_closing_speed(monkeypatch):
     # Closing speed to a stationary gate = speed along the LOS: starts at 10 cos(angle) m/s and grows.
     assert seen[0] == pytest.approx(10.0 * math.cos(math.radians(r.angle)), abs=0.3)
     assert max(seen) > seen[0] + 1.0
+
+
+def test_per_run_setpoint_metrics_match_the_recorded_setpoints():
+    from companion.metrics import oscillation, tilt_deg
+
+    r = run_once(CFG, RunSpec("planar", 3), record=True)
+    tr = r.trajectory
+    roll, pitch = np.array(tr.roll_sp), np.array(tr.pitch_sp)
+    assert np.isfinite(roll).all()  # no delay: every frame's command came from the controller
+    # Independent: the tilt of the held command, frame by frame (the same commands, each at least once).
+    expect = np.degrees(np.arccos(np.cos(np.radians(roll)) * np.cos(np.radians(pitch)))).max()
+    assert r.max_tilt_deg == pytest.approx(expect, abs=1e-9)
+    assert r.max_tilt_deg == pytest.approx(float(tilt_deg(roll, pitch).max()), abs=1e-9)
+    assert r.roll_osc == oscillation(np.array(tr.t), roll)
+    d = r.as_dict(RADII)
+    assert d["max_tilt_deg"] == r.max_tilt_deg and d["roll_osc_amp_deg"] == r.roll_osc.amplitude_deg
+    assert 0.0 <= d["max_tilt_deg"] < 90.0 and d["roll_osc_rms_rate_dps"] >= 0.0
