@@ -50,6 +50,9 @@ class AirframeConfig(Section):
     thrust_min: Number = Field(
         0.1, gt=0.0, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls)"
     )
+    max_tilt: Deg = Field(
+        50.0, ge=10.0, le=80.0, description="flight envelope: largest commanded tilt of the thrust axis from vertical"
+    )
 
     @property
     def f_max(self) -> float:
