@@ -56,8 +56,9 @@ class PX4Config(Section):
     preflight_timeout: Seconds = Field(120.0, gt=0.0, le=1200.0, description="s; start until pre-flight OK")
     sih: SihConfig = SihConfig()
     params: dict[str, float] = Field(
-        default_factory=lambda: {"EKF2_GPS_DELAY": 0.0},
-        description="further PX4 parameters set at start; MPC_THR_HOVER defaults to airframe.hover_thrust",
+        default_factory=dict,
+        description="further PX4 parameters set at start (they win over EKF2_GPS_DELAY 0 and "
+        "MPC_THR_HOVER = airframe.hover_thrust, which are always set)",
     )
     truth_url: str = Field(
         "", description="pymavlink URL of SIH's display link (udpin:127.0.0.1:19410+N): ground truth for the "

@@ -26,6 +26,7 @@ import subprocess
 import tempfile
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
@@ -33,6 +34,13 @@ if TYPE_CHECKING:
     from companion.config import Config
 
 ENV_VAR = "PX4_SITL_DIR"
+
+
+@dataclass(frozen=True)
+class PX4Status:
+    armed: bool
+    nav_mode: str  # PX4's name: Hold, Takeoff, Land, Offboard, Position, Descend, ...
+    failsafe: bool
 
 
 class PX4SitlError(RuntimeError):
@@ -163,6 +171,14 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)
 
 
+def px4_params(cfg: Config) -> dict[str, float]:
+    """The PX4 parameters a run sets: the SIH vehicle (px4.sih), EKF2_GPS_DELAY 0 (SIH's GPS has no delay;
+    EKF2's default 110 ms puts its position 1.4-1.9 m ahead at a gate), MPC_THR_HOVER = airframe.hover_thrust
+    (PX4's hover-thrust estimate is clamped to it +- 0.2), then px4.params."""
+    return {**cfg.px4.sih.params(), "EKF2_GPS_DELAY": 0.0, "MPC_THR_HOVER": cfg.airframe.hover_thrust,
+            **cfg.px4.params}
+
+
 def _fmt_value(v: float) -> str:
     # PX4's `param set` parses by the parameter's type: integers must not carry a decimal point.
     return str(int(v)) if float(v).is_integer() else repr(float(v))
@@ -201,9 +217,9 @@ class PX4Sitl:
     @classmethod
     def from_config(cls, cfg: Config, *, sitl_dir: str | Path | None = None, instance: int | None = None,
                     log: Callable[[str], None] | None = None) -> PX4Sitl:
-        """PX4 for this config: its SIH vehicle (px4.sih), MPC_THR_HOVER = airframe.hover_thrust, px4.params."""
+        """PX4 for this config: its SIH vehicle and parameters (:func:`px4_params`)."""
         p = cfg.px4
-        params = {**p.sih.params(), "MPC_THR_HOVER": cfg.airframe.hover_thrust, **p.params}
+        params = px4_params(cfg)
         inst = instance if instance is not None else p.instance
         return cls(find_sitl_dir(sitl_dir, p.sitl_dir), instance=inst,
                    candidates=range(p.instance_min, p.instance_max + 1), work_parent=p.work_dir or None,
@@ -344,6 +360,33 @@ class PX4Sitl:
         if m is None:
             raise PX4SitlError(f"PX4 instance {self.instance}: no parameter {name}")
         return float(m.group(1))
+
+    def status(self) -> PX4Status:
+        """Armed state, navigation mode and failsafe flag from PX4's commander (no MAVLink needed)."""
+        out = self.client("commander", "status")
+        mode = re.search(r"\bnavigation mode: (.+)", out)
+        fs = re.search(r"in failsafe: (\w+)", out)
+        return PX4Status(armed="Armed" in re.findall(r"\b(Armed|Disarmed)\b", out),
+                         nav_mode=mode.group(1).strip() if mode else "?",
+                         failsafe=bool(fs and fs.group(1) == "yes"))
+
+    def land_and_reset(self, timeout: float = 90.0) -> None:
+        """Bring a shared instance back to the start: landed, disarmed, in Hold, pre-flight checks passing.
+
+        After an offboard-loss landing PX4 stays disarmed in Offboard and refuses its pre-flight checks
+        until another mode is set; Hold is set here.
+        """
+        deadline = time.monotonic() + timeout
+        st = self.status()
+        if st.armed and st.nav_mode != "Land":
+            self.client("commander", "land", check=False)
+        while self.status().armed:
+            if time.monotonic() > deadline:
+                raise PX4SitlError(f"PX4 instance {self.instance}: still armed {timeout:.0f} s after land")
+            time.sleep(1.0)
+        if self.status().nav_mode != "Hold":
+            self.client("commander", "mode", "auto:loiter", check=False)
+        self.wait_preflight(max(10.0, deadline - time.monotonic()))
 
     # ------------------------------------------------------------------------------ helpers
     def _console_text(self) -> str:
