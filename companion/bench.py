@@ -62,8 +62,14 @@ _EXTERNAL = (
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = config_from_args(args)
     only = set(args.only or [])
+    sections = ("controller_step_us", *(key for key, _, _ in _EXTERNAL))
+    unknown = sorted(only - set(sections))
+    if unknown:
+        print(f"companion bench: --only {', '.join(unknown)}: no such section (valid: {', '.join(sections)})",
+              file=sys.stderr)
+        return 2
+    cfg = config_from_args(args)
     results: dict[str, Any] = {
         "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
     }

@@ -15,6 +15,8 @@ COMMAND_MODULES = (
     "companion.evaluation",
     "companion.replay",
     "companion.app.main",
+    "companion.check",
+    "companion.calibrate",
 )
 
 

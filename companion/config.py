@@ -51,6 +51,9 @@ class AirframeConfig(Section):
     thrust_min: Number = Field(
         0.1, gt=0.0, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls)"
     )
+    max_tilt: Deg = Field(
+        50.0, ge=10.0, le=80.0, description="flight envelope: largest commanded tilt of the thrust axis from vertical"
+    )
 
     @property
     def f_max(self) -> float:
@@ -79,11 +82,11 @@ class CameraConfig(Section):
     width: int = Field(640, ge=16, le=8192, description="px")
     height: int = Field(480, ge=16, le=8192, description="px")
     half_fov: Deg = Field(33.5, gt=1.0, lt=89.0, description="horizontal half angle of view, deg")
-    fx: float | None = Field(None, gt=0.0, description="px; default from half_fov")
-    fy: float | None = Field(None, gt=0.0, description="px; default = fx")
-    cx: float | None = Field(None, description="px; default = width/2")
-    cy: float | None = Field(None, description="px; default = height/2")
-    distortion: list[float] = Field(default_factory=list, max_length=14, description="OpenCV k1,k2,p1,p2[,k3..]")
+    fx: Number | None = Field(None, gt=0.0, le=1e6, description="px; default from half_fov")
+    fy: Number | None = Field(None, gt=0.0, le=1e6, description="px; default = fx")
+    cx: Number | None = Field(None, description="px; default = width/2 (must lie in the image)")
+    cy: Number | None = Field(None, description="px; default = height/2 (must lie in the image)")
+    distortion: list[Number] = Field(default_factory=list, max_length=14, description="OpenCV k1,k2,p1,p2[,k3..]")
     rate: Hertz = Field(30.0, gt=0.5, le=1000.0, description="frame rate, Hz")
     mount: MountConfig = MountConfig()
 
@@ -93,6 +96,9 @@ class CameraConfig(Section):
             raise ValueError(f"distortion must have 0, 4, 5, 8, 12 or 14 coefficients, got {len(self.distortion)}")
         if any(not math.isfinite(d) for d in self.distortion):
             raise ValueError("distortion coefficients must be finite")
+        for name, c, size in (("cx", self.cx, self.width), ("cy", self.cy, self.height)):
+            if c is not None and not 0.0 <= c <= size:
+                raise ValueError(f"{name} {c} lies outside the image (0..{size} px)")
         return self
 
     @property
@@ -210,14 +216,11 @@ def load_config(
 ) -> Config:
     """Build the Config: base file (default config/default.yaml) + files + ``section.key=value`` overrides."""
     base_path = Path(base) if base is not None else default_config_dir() / "default.yaml"
-    sources: list[tuple[str, dict[str, Any]]] = []
+    steps: list[tuple[str, dict[str, Any]]] = []  # (source named in errors, its data), in order
     for p in (base_path, *map(Path, files)):
         data = _load_with_includes(p)
         _validate_one(p, data)
-        sources.append((str(p), data))
-    merged: dict[str, Any] = {}
-    for _, data in sources:
-        merged = deep_merge(merged, data)
+        steps.append((str(p), data))
     for ov in overrides:
         one = parse_override(ov)
         try:
@@ -225,12 +228,30 @@ def load_config(
         except ValidationError as e:
             if e.errors()[0]["loc"]:
                 raise ConfigError(format_validation_error(e, f"--set {ov}")) from None
-        merged = deep_merge(merged, one)
+        steps.append((f"--set {ov}", one))
+    merged: dict[str, Any] = {}
+    for _, data in steps:
+        merged = deep_merge(merged, data)
     try:
         return Config.model_validate(merged)
     except ValidationError as e:
-        names = ", ".join(s for s, _ in sources)
-        raise ConfigError(format_validation_error(e, names)) from None
+        raise ConfigError(format_validation_error(e, _culprit(steps))) from None
+
+
+def _culprit(steps: Sequence[tuple[str, dict[str, Any]]]) -> str:
+    """The source whose addition first makes the merged config invalid (a cross-section error's cause).
+
+    Each source alone was valid, so the first invalid prefix names the file or --set that broke it.
+    Runs on the error path only.
+    """
+    merged: dict[str, Any] = {}
+    for name, data in steps:
+        merged = deep_merge(merged, data)
+        try:
+            Config.model_validate(merged)
+        except ValidationError:
+            return name
+    return ", ".join(name for name, _ in steps)
 
 
 def config_as_dict(cfg: Config) -> dict[str, Any]:

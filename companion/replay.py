@@ -293,7 +293,13 @@ def _cmd(args: argparse.Namespace) -> int:
     try:
         s = replay(args.video, cfg, args.log, args.out, args.t0, progress=not args.quiet)
     except ValueError as e:  # ReplayError, DetectorError, TrackerError: already one line
+        if isinstance(e, UnicodeDecodeError):  # a binary --log file
+            e = ValueError(f"{args.log}: not a text flight log (byte 0x{e.object[e.start]:02x} at offset {e.start})")
         print(f"companion replay: {e}", file=sys.stderr)
+        return 2
+    except (OSError, csv.Error) as e:  # an output folder that cannot be made, a log that is not text
+        where = getattr(e, "filename", None) or args.log or args.out
+        print(f"companion replay: {where}: {getattr(e, 'strerror', None) or e}", file=sys.stderr)
         return 2
     print(f"replay: {s['frames']} frames, box in {s['boxes']}; wrote {s['annotated']}, {s['csv']}, {s['plot']}")
     return 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from companion.configbase import Deg, Hertz, Meters, Number, Seconds, Section
 
@@ -35,12 +35,23 @@ class SafetyConfig(Section):
         description="s without a fresh setpoint from the control loop before the watchdog hands over to HOLD",
     )
     loop_stall_timeout: Seconds = Field(
-        2.0, gt=0.0, le=60.0,
-        description="s the event loop may stop while commanding before the process kills itself (PX4 failsafe)",
+        2.0, ge=0.5, le=60.0,
+        description="s the event loop may stop while commanding before the process kills itself (PX4 failsafe); "
+        "at least 0.5 s (a detector call or a GC pause is not a stall) and later than the link's loop guard",
     )
     land_after_abort: bool = Field(
         False, description="after an abort in HOLD, land and disarm (False: stay in HOLD for the pilot)"
     )
+
+    @model_validator(mode="after")
+    def _layers(self) -> SafetyConfig:
+        # The deadman is the last layer (companion/app/deadman.py): it must not fire before the link's
+        # loop guard (2 x perception_stall_timeout + 0.2 s) has had its chance to hand over to HOLD.
+        guard = 2.0 * self.perception_stall_timeout + 0.2
+        if self.loop_stall_timeout <= guard:
+            raise ValueError(f"safety.loop_stall_timeout {self.loop_stall_timeout:g} s must exceed the link's loop "
+                             f"guard (2 x safety.perception_stall_timeout + 0.2 s = {guard:g} s)")
+        return self
 
 
 class SyntheticCameraConfig(Section):

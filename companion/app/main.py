@@ -47,12 +47,15 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-plot", action="store_true", help="do not write plot.png at the end")
     p.set_defaults(func=_cmd_fly)
 
-    lp = subparsers.add_parser("log", help="flight logs: plot")
+    lp = subparsers.add_parser("log", help="flight logs: plot, summary, export")
     lsub = lp.add_subparsers(dest="log_command", required=True, metavar="ACTION")
     pp = lsub.add_parser("plot", help="plot a flight folder to PNG")
     pp.add_argument("folder", help="flight folder (or a log directory: its latest flight)")
     pp.add_argument("-o", "--output", help="PNG path (default FOLDER/plot.png)")
     pp.set_defaults(func=_cmd_plot)
+    from companion.logtools import register_log_actions
+
+    register_log_actions(lsub)  # log summary, log export
 
 
 def _overrides(args: argparse.Namespace) -> list[str]:

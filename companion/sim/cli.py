@@ -83,6 +83,11 @@ def cmd_in_process(args: argparse.Namespace) -> int:
               f"d_center = {o.d_center:.2f} m, top speed {o.top_speed:.1f} m/s")
     else:
         print(f"{args.motion} seed {args.seed}: failed ({o.reason}) after {res.sim_time:.2f} s")
+    if d["max_tilt_deg"] is not None:
+        osc = "" if d["roll_osc_amp_deg"] is None else (
+            f", roll-setpoint oscillation {d['roll_osc_amp_deg']:.1f} deg at {d['roll_osc_freq_hz']:.2f} Hz "
+            f"(RMS rate {d['roll_osc_rms_rate_dps']:.0f} deg/s)")
+        print(f"commanded: max tilt {d['max_tilt_deg']:.1f} deg{osc}")
     print("success by gate radius: " + ", ".join(f"{k} m: {'yes' if v else 'no'}" for k, v in d["success"].items()))
     if args.json is not None:
         args.json.write_text(json.dumps(d, indent=1))

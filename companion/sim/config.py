@@ -7,6 +7,8 @@ and drops, the gate motions and the initial conditions.
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from pydantic import Field
 
 from companion.configbase import (
@@ -42,13 +44,16 @@ class SimQuadConfig(Section):
     drag_lin: Number = Field(0.05, ge=0.0, le=10.0, description="linear drag, N per m/s of airspeed")
     drag_quad: Number = Field(0.011, ge=0.0, le=10.0, description="quadratic drag, N per (m/s)^2")
     max_rate: DegPerSecond = Field(220.0, gt=1.0, le=2000.0, description="body-rate limit, deg/s")
+    cmd_delay: Seconds = Field(
+        0.0, ge=0.0, le=1.0, description="pure delay of every setpoint before the vehicle's loops act on it, s"
+    )
     max_touchdown_speed: MetersPerSecond = Field(
         1.0, gt=0.0, le=20.0, description="descending faster than this at z = 0 is a ground contact"
     )
 
 
 class WindConfig(Section):
-    mean: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
+    mean: list[Number] = Field(default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
                               description="constant wind, ENU m/s")
     gust_std: MetersPerSecond = Field(0.0, ge=0.0, le=30.0, description="gust std per axis, m/s")
     gust_tau: Seconds = Field(2.0, gt=0.0, le=100.0, description="gust correlation time (Gauss-Markov), s")
@@ -106,7 +111,8 @@ class ScenarioConfig(Section):
     altitude_max: Meters = Field(20.0, gt=0.5, le=500.0)
     gate_height_offset: Meters = Field(1.0, ge=0.0, le=50.0, description="gate centre +- this, m")
     visual_radius: Meters = Field(1.0, gt=0.05, le=20.0, description="radius of the ring the camera sees, m")
-    gate_radii: list[float] = Field(default_factory=lambda: [0.5, 1.0, 2.0], min_length=1)
+    gate_radii: list[Annotated[Number, Field(gt=0.0, le=100.0)]] = Field(
+        default_factory=lambda: [0.5, 1.0, 2.0], min_length=1, max_length=100)
     timeout: Seconds = Field(20.0, gt=0.1, le=600.0, description="run ends unscored after this, s")
     fov_timeout: Seconds = Field(1.0, gt=0.0, le=60.0, description="no box for this long: fov_lost, s")
 

@@ -114,4 +114,18 @@ def aggregate(outcomes: list[dict], radii: list[float]) -> dict:
                 counts[f] = counts.get(f, 0) + 1
         reasons[rkey(r)] = counts
     out["failures"] = reasons
+    out.update(setpoint_metrics(outcomes))
+    return out
+
+
+SETPOINT_METRICS = ("roll_osc_rms_rate_dps", "roll_osc_amp_deg", "roll_osc_freq_hz")
+
+
+def setpoint_metrics(runs: list[dict]) -> dict:
+    """Over runs: the largest commanded tilt, and the mean of each roll-oscillation figure (runs that have one)."""
+    tilts = [r["max_tilt_deg"] for r in runs if r.get("max_tilt_deg") is not None]
+    out: dict = {"max_tilt_deg": float(max(tilts)) if tilts else None}
+    for k in SETPOINT_METRICS:
+        vals = [r[k] for r in runs if r.get(k) is not None]
+        out[f"{k}_mean"] = float(np.mean(vals)) if vals else None
     return out

@@ -32,8 +32,15 @@ def test_table1_quick_end_to_end(tmp_path, capsys):
         if r["crossed"]:
             assert r["success"]["1.0"] == (r["d_center_m"] < 1.0)
             assert r["failure"]["1.0"] == (None if r["d_center_m"] < 1.0 else "missed")
+    # Setpoint metrics: per run, the largest tilt over runs and mean oscillation per group and in total.
+    assert res["total"]["max_tilt_deg"] == pytest.approx(max(r["max_tilt_deg"] for r in runs))
+    assert res["total"]["roll_osc_rms_rate_dps_mean"] == pytest.approx(
+        np.mean([r["roll_osc_rms_rate_dps"] for r in runs]))
+    for g in res["groups"].values():
+        assert g["max_tilt_deg"] <= res["total"]["max_tilt_deg"]
     md = (out / "table.md").read_text()
     assert "| stationary |" in md and "(0.93)" in md and "(4.32)" in md
+    assert "max tilt deg" in md and "roll osc. amplitude deg" in md
     assert (out / "trajectories.png").stat().st_size > 10_000
     assert "table1" in capsys.readouterr().out
 

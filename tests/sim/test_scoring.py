@@ -65,3 +65,15 @@ def test_aggregate_rates_and_means():
     assert agg["top_speed_mps"] == 14.0
     assert agg["failures"]["1.0"] == {"missed": 1, "fov_lost": 1, "timeout": 1}
     assert agg["failures"]["2.0"] == {"fov_lost": 1, "timeout": 1}
+
+
+def test_aggregate_setpoint_metrics_max_tilt_and_mean_oscillation():
+    radii = [1.0]
+    runs = [RunOutcome(True, 2.0, 0.2, None).as_dict(radii) for _ in range(3)]
+    runs[0].update(max_tilt_deg=30.0, roll_osc_rms_rate_dps=10.0, roll_osc_amp_deg=2.0, roll_osc_freq_hz=1.0)
+    runs[1].update(max_tilt_deg=55.0, roll_osc_rms_rate_dps=20.0, roll_osc_amp_deg=4.0, roll_osc_freq_hz=2.0)
+    runs[2].update(max_tilt_deg=None, roll_osc_rms_rate_dps=None, roll_osc_amp_deg=None, roll_osc_freq_hz=None)
+    agg = aggregate(runs, radii)
+    assert agg["max_tilt_deg"] == 55.0  # the largest over runs, not a mean
+    assert agg["roll_osc_rms_rate_dps_mean"] == 15.0 and agg["roll_osc_amp_deg_mean"] == 3.0
+    assert agg["roll_osc_freq_hz_mean"] == 1.5  # runs without a figure are left out, not counted as zero
