@@ -33,6 +33,7 @@ from companion.configbase import (
     parse_override,
     read_yaml,
 )
+from companion.hover import HoverConfig
 from companion.px4sitl.config import PX4Config
 from companion.sim.config import SimConfig
 
@@ -159,6 +160,7 @@ class Config(Section):
     app: AppConfig = AppConfig()
     log: LogConfig = LogConfig()
     sim: SimConfig = SimConfig()
+    hover: HoverConfig = HoverConfig()  # in-flight hover-thrust estimate (companion/hover.py)
     px4: PX4Config = PX4Config()
 
     @model_validator(mode="after")

@@ -45,6 +45,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--log-dir", help="parent folder of the flight log (overrides log.directory)")
     p.add_argument("--status", action="store_true", help="live status line on stderr")
     p.add_argument("--no-plot", action="store_true", help="do not write plot.png at the end")
+    from companion.app.record import add_record_arguments
+
+    add_record_arguments(p)
     p.set_defaults(func=_cmd_fly)
 
     lp = subparsers.add_parser("log", help="flight logs: plot, summary, export")
@@ -72,10 +75,15 @@ def _overrides(args: argparse.Namespace) -> list[str]:
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
+    from companion.app.record import is_recording, record_kwargs
     from companion.config import load_config
+    from companion.configbase import ConfigError
 
+    if args.record and is_recording(args.record):
+        raise ConfigError(f"--record {args.record}: already holds a recording (index.csv); choose a new folder")
     cfg = load_config(args.config, _overrides(args))
-    reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot))
+    reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot, record=args.record,
+                                        record_kw=record_kwargs(args)))
     print(f"companion: flight log {folder}", file=sys.stderr)
     return int(reason)
 
@@ -136,6 +144,8 @@ async def fly(
     stderr: Any = sys.stderr,
     handle_signals: bool = True,
     alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
+    record: str | Path | None = None,
+    record_kw: dict[str, Any] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
     """One flight, start to safe state. Returns (outcome, flight folder, summary).
 
@@ -160,6 +170,11 @@ async def fly(
 
         truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
         camera, perception, in_thread = build_camera(cfg, link, log)
+        if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
+            from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
+
+            camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
+                                     link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
                         status_line=status_line, perception_in_thread=in_thread)
         loop = asyncio.get_running_loop()
