@@ -129,6 +129,10 @@ def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
                 return None
             # Stamped with the attitude sample's time: the frame is "captured" at the instant whose
             # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
+            source = getattr(link, "truth_source", None)
+            if source is not None:  # a simulator's truth (PX4 SIH): its true pose at that instant
+                true = source.at(att.t_rx)
+                return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
             return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
 
         cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
@@ -171,7 +175,11 @@ async def fly(
     app: FlightApp | None = None
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
                                    else log.event(f"link {kind} {detail}"))
+    truth = None
     try:
+        from companion.px4sitl.truth import attach_truth
+
+        truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
         camera, perception, in_thread = build_camera(cfg, link, log)
         if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
@@ -205,6 +213,8 @@ async def fly(
                 loop.remove_signal_handler(sig)
         with contextlib.suppress(Exception):
             await asyncio.wait_for(link.close(), 10.0)
+        if truth is not None:
+            truth.close()
         notifier.close()
     log.close(summary)
     if plot and cfg.log.plot:
@@ -310,7 +320,6 @@ def detector_available(cfg: Config) -> str | None:
 def run_sim(args: argparse.Namespace) -> int:
     """``companion sim``: simulated PX4 (own process) + synthetic camera + the app, in real time."""
     from companion.config import load_config
-    from companion.flightlog import gate_crossings, read_flight
 
     ov = [*getattr(args, "overrides", []), "app.camera=synthetic"]
     if getattr(args, "motion", None):
@@ -328,6 +337,14 @@ def run_sim(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, [*ov, f"link.url={px4.url}"])
         reason, folder, summary = asyncio.run(fly(cfg, status_line=not getattr(args, "no_status", False),
                                                   plot=not getattr(args, "no_plot", False)))
+    print_flight_report(folder, summary)
+    return int(reason)
+
+
+def print_flight_report(folder: Path, summary: dict[str, Any]) -> None:
+    """The end of ``companion sim``: outcome, each gate crossing (from the logged truth), latency, log folder."""
+    from companion.flightlog import gate_crossings, read_flight
+
     f = read_flight(folder)
     cross = gate_crossings(f)
     lat = summary.get("frame_to_setpoint_ms", {})
@@ -339,7 +356,6 @@ def run_sim(args: argparse.Namespace) -> int:
         print(f"frame -> setpoint latency: p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms; "
               f"app CPU {summary.get('cpu_percent', 0):.0f} %")
     print(f"log: {folder}" + (f"  plot: {folder / 'plot.png'}" if (folder / "plot.png").exists() else ""))
-    return int(reason)
 
 
 def add_sim_arguments(p: argparse.ArgumentParser) -> None:
