@@ -15,6 +15,9 @@ COMMAND_MODULES = (
     "companion.evaluation",
     "companion.replay",
     "companion.app.main",
+    "companion.check",
+    "companion.calibrate",
+    "perception.evaluate",  # companion perception eval
 )
 
 

@@ -33,6 +33,8 @@ from companion.configbase import (
     parse_override,
     read_yaml,
 )
+from companion.hover import HoverConfig
+from companion.px4sitl.config import PX4Config
 from companion.sim.config import SimConfig
 
 G = 9.81  # m/s^2, the paper's |g|
@@ -49,6 +51,9 @@ class AirframeConfig(Section):
     thrust_to_weight: Number = Field(2.0, gt=1.05, le=10.0, description="max collective thrust / weight")
     thrust_min: Number = Field(
         0.1, gt=0.0, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls)"
+    )
+    max_tilt: Deg = Field(
+        50.0, ge=10.0, le=80.0, description="flight envelope: largest commanded tilt of the thrust axis from vertical"
     )
 
     @property
@@ -155,6 +160,8 @@ class Config(Section):
     app: AppConfig = AppConfig()
     log: LogConfig = LogConfig()
     sim: SimConfig = SimConfig()
+    hover: HoverConfig = HoverConfig()  # in-flight hover-thrust estimate (companion/hover.py)
+    px4: PX4Config = PX4Config()
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Config:

@@ -78,6 +78,7 @@ class PNController:
             f_max=cfg.airframe.f_max,
             f_min=cfg.airframe.f_min,
             fov=cfg.guidance.fov,
+            max_tilt=math.radians(cfg.airframe.max_tilt),
         )
         cp = ControllerParams(
             guidance=gp,

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from companion import frames
+from companion import frames, metrics
 from companion.config import Config, load_config
 from companion.controller import ControlOutput, PNController
 from perception.types import BoundingBox
@@ -111,9 +111,14 @@ def test_any_attitude_and_box_gives_a_finite_setpoint_within_limits(seed, cx, cy
         sp = o.setpoint
         assert all(math.isfinite(v) for v in (sp.roll_deg, sp.pitch_deg, sp.yaw_deg, sp.thrust))
         assert cfg.airframe.thrust_min <= sp.thrust <= 1.0
-        if o.los_ned is not None:  # the commanded optical axis stays within gamma_bar of the LOS
+        # The flight envelope holds whatever the LOS: tilt of the thrust axis, measured from the Euler angles.
+        assert float(metrics.tilt_deg(sp.roll_deg, sp.pitch_deg)) <= cfg.airframe.max_tilt + 1e-6
+        if o.los_ned is not None:
+            # The commanded optical axis stays within gamma_bar of the LOS, unless the LOS is steeper than the
+            # tilt envelope lets the optical axis follow (then it is exactly as far off as the envelope forces).
             ang = math.degrees(math.acos(min(1.0, float(sp.R_ned_frd[:, 0] @ o.los_ned))))
-            assert ang <= cfg.guidance.gamma_bar + 1e-6
+            elevation = math.degrees(math.asin(min(1.0, abs(float(o.los_ned[2])))))
+            assert ang <= max(cfg.guidance.gamma_bar, elevation - cfg.airframe.max_tilt) + 1e-6
 
 
 def test_hover_thrust_from_the_autopilot(ctrl) -> None:
