@@ -38,6 +38,7 @@ from companion.sim.sensors import Sensors, Wind
 if TYPE_CHECKING:
     from companion.config import Config
 
+_FLU_TO_FRD = np.array([1.0, -1.0, -1.0])
 ControllerKind = Literal["pn", "pn_true_vrel", "baseline"]
 CONTROLLERS: tuple[ControllerKind, ...] = ("pn", "pn_true_vrel", "baseline")
 CameraKind = Literal["geometric", "rendered"]
@@ -195,16 +196,18 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             outcome = RunOutcome(False, None, None, "fov_lost")
             break
         q_est = sensors.attitude_wxyz_ned_frd(s.q)
-        # The controller's contract: the box of the frame captured at t_cap with the attitude at t_cap
+        imu = sensors.imu(quad.specific_force_body(), s.omega)  # one draw per frame, recorded or not
+        acc_frd = imu.accel * _FLU_TO_FRD  # the accelerometer as PX4 reports it (body FRD)
+        # The controller's contract: the box of the frame captured at t_cap with the attitude (and IMU) at t_cap
         # (the app matches telemetry to the frame time). attitude_at_capture=False instead pairs the
         # late box with the attitude at arrival, which is what a naive pipeline does.
-        pending.append((t + delay, t, box, q_est))
+        pending.append((t + delay, t, box, q_est, acc_frd))
         while pending and pending[0][0] <= t + 1e-9:
-            _, t_cap, b, q_cap = pending.popleft()
+            _, t_cap, b, q_cap, acc_cap = pending.popleft()
             if sim.camera.attitude_at_capture:
-                q_est = q_cap
+                q_est, acc_frd = q_cap, acc_cap
             if spec.controller == "pn":
-                out = ctrl.step(t_cap, b, q_est)
+                out = ctrl.step(t_cap, b, q_est, acc_frd if cfg.sim.imu_to_controller else None, t_now=t)
             elif spec.controller == "pn_true_vrel":
                 # Ablation only: the paper's "perfect knowledge" of the closing speed.
                 r = g - s.p
@@ -235,8 +238,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.box.append(None if box is None else (box.cx, box.cy, box.w, box.h))
             traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
-            # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
-            traj.accel.append(sensors.imu(quad.specific_force_body(), s.omega).accel)
+            # IMU and baro are simulated for the log (and the app's safety layer); the closing-speed estimate
+            # may use the accelerometer (sim.imu_to_controller), the PN law itself needs neither.
+            traj.accel.append(imu.accel)
             traj.baro.append(sensors.baro_altitude(float(s.p[2])))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
