@@ -417,3 +417,15 @@ def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:
     c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return Setpoint(0.0, 0.0, yaw_deg, hover_thrust, R)
+
+
+def straight_pass(l: np.ndarray, f_min: float, f_max: float, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
+    """The gate pass: zero PN demand, optical axis (body x) on the LOS ``l`` (world, unit), no roll about it
+    (body y horizontal: the PN frame with phi = theta = 0) and the thrust whose vertical part carries the
+    weight, ``f = g / (e_z . z_B)`` within [f_min, f_max]. The net acceleration is then horizontal and along
+    the LOS's heading (``-g tan(elevation)``): no climb, no sink, no bank held through the gate.
+    """
+    R_W_PN = pn_frame(l, y_ref)
+    up = float(R_W_PN[2, 2])  # vertical part of the thrust axis: cos(LOS elevation)
+    f = min(f_max, max(f_min, G / max(up, 1e-3)))
+    return ThrustAttitude(f, 0.0, 0.0, R_W_PN, 0.0, False)
