@@ -23,10 +23,10 @@ LEVEL_Q = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 @settings(max_examples=200, deadline=None)
-@given(k=st.floats(4.0, 60.0), y=st.floats(-0.35, 0.35), z=st.floats(-0.25, 0.25), r=st.floats(0.3, 2.0),
+@given(k=st.floats(5.0, 60.0), y=st.floats(-0.35, 0.35), z=st.floats(-0.25, 0.25), r=st.floats(0.3, 2.0),
        yaw=st.floats(-40.0, 40.0))
 def test_range_from_the_box_of_a_projected_ring(k, y, z, r, yaw) -> None:
-    """Independent: the simulator's exact projection of a ring (range k ring radii, k >= 4); off-centre and
+    """Independent: the simulator's exact projection of a ring (range k ring radii, k >= 5); off-centre and
     turned up to 40 deg."""
     d = k * r
     centre = P + d * np.array([1.0, y, z]) / math.sqrt(1 + y * y + z * z)
@@ -40,7 +40,7 @@ def test_range_from_the_box_of_a_projected_ring(k, y, z, r, yaw) -> None:
         return
     # A turned ring keeps its diameter vertically here; foreshortening and perspective keep the estimate within
     # a few % (long rather than short: a long range means a high closing speed, the safe side for PN).
-    assert d * 0.97 <= got <= d * 1.08
+    assert d * 0.97 <= got <= d * 1.05
 
 
 def test_cut_box_gives_no_range() -> None:
