@@ -139,6 +139,8 @@ class _Steering:
         else:
             from companion.controller import PNController
 
+            if kind == "pn_true_vrel":  # the ablation sets v_rel_bar itself: no estimate on top of it
+                cfg = with_overrides(cfg, {"guidance": {"closing_speed": "fixed"}})
             self.ctrl = PNController.from_config(cfg)
         self._cfg = cfg
         self.truth: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # p, v, gate, gate v
