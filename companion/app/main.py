@@ -48,6 +48,10 @@ def register(subparsers: Any) -> None:
     from companion.app.record import add_record_arguments
 
     add_record_arguments(p)
+    p.add_argument("--shadow", action="store_true",
+                   help="shadow mode: the whole pipeline beside the pilot; setpoints logged and plotted, never sent "
+                        "(no arming, no mode change, no offboard)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="shadow mode: stop after S seconds")
     p.set_defaults(func=_cmd_fly)
 
     lp = subparsers.add_parser("log", help="flight logs: plot, summary, export")
@@ -82,6 +86,13 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     if args.record and is_recording(args.record):
         raise ConfigError(f"--record {args.record}: already holds a recording (index.csv); choose a new folder")
     cfg = load_config(args.config, _overrides(args))
+    if args.shadow:
+        from companion.app.shadow import shadow
+
+        code, folder, _ = asyncio.run(shadow(cfg, duration=args.duration, plot=not args.no_plot, record=args.record,
+                                             record_kw=record_kwargs(args)))
+        print(f"companion: shadow log {folder}", file=sys.stderr)
+        return code
     reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot, record=args.record,
                                         record_kw=record_kwargs(args)))
     print(f"companion: flight log {folder}", file=sys.stderr)
