@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.config import add_config_arguments, config_as_dict, config_from_args
-from companion.sim.runner import CAMERAS, RunResult, RunSpec, run_once, with_overrides
+from companion.sim.runner import CAMERAS, PROTOCOLS, RunResult, RunSpec, run_once, with_overrides
 from companion.sim.scoring import aggregate, rkey, setpoint_metrics
 
 if TYPE_CHECKING:
@@ -291,11 +291,10 @@ def build_suite(name: str, cfg: Config, runs: int | None = None, seed: int = 0) 
 
 
 def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0, n_jobs: int = 2,
-              progress: bool = True, camera: str = "geometric") -> dict:
+              progress: bool = True, camera: str = "geometric", protocol: str = "engagement") -> dict:
     """Run a suite; returns the JSON-able result (per-run, groups, total, markdown, paper)."""
     suite = build_suite(name, cfg, runs, seed)
-    if camera != "geometric":
-        suite.jobs = [Job(j.cfg, replace(j.spec, camera=camera), j.group) for j in suite.jobs]
+    suite.jobs = [Job(j.cfg, replace(j.spec, camera=camera, protocol=protocol), j.group) for j in suite.jobs]
     t0 = time.perf_counter()
     results = run_jobs(suite.jobs, suite.radii, n_jobs, progress, desc=name)
     wall = time.perf_counter() - t0
@@ -315,6 +314,7 @@ def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0,
         "sim_time_s": sim_s,
         "jobs": n_jobs,
         "camera": camera,
+        "protocol": protocol,
         "config": config_as_dict(cfg),
         "runs": results,
     }
@@ -446,7 +446,7 @@ def plot_latency(out: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def sample_runs(name: str, cfg: Config, seed: int, per_group: int = 1) -> list[RunResult]:
+def sample_runs(name: str, cfg: Config, seed: int, per_group: int = 1, protocol: str = "engagement") -> list[RunResult]:
     """Re-fly the first run(s) of each group with recording on (cheap: a handful of runs)."""
     suite = build_suite(name, cfg, None, seed)
     seen: dict[str, int] = {}
@@ -457,7 +457,7 @@ def sample_runs(name: str, cfg: Config, seed: int, per_group: int = 1) -> list[R
         if seen.get(key, 0) < per_group:
             seen[key] = seen.get(key, 0) + 1
             picked.append(job)
-    return [run_once(j.cfg, j.spec, record=True) for j in picked[:8]]
+    return [run_once(j.cfg, replace(j.spec, protocol=protocol), record=True) for j in picked[:8]]
 
 
 # -- command line -------------------------------------------------------------------------------------
@@ -481,11 +481,21 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-plots", action="store_true", help="skip the plots")
     p.add_argument("--camera", choices=CAMERAS, default="geometric",
                    help="geometric: projected box (paper V-A); rendered: frames through the real detector (slow)")
+    p.add_argument("--protocol", choices=PROTOCOLS, default="engagement",
+                   help="engagement (default): the app's engagement logic (acquire, close, straight pass, "
+                   "recover, aborts) on detector-like boxes clipped to the image; controller: the paper's "
+                   "protocol (controller only until the gate plane, box centred on the gate)")
     p.add_argument("--iterations", type=int, default=25, help="tune: BO iterations after the random start (25)")
     p.add_argument("--init-points", type=int, default=5, help="tune: random points first (5)")
     p.add_argument("--reward", choices=tuple(REWARDS), default="dt",
                    help="tune: dt = distance + time (c_t 10, c_d 3), d = distance only (c_d 5, c 3)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--autopilot", choices=("in-process", "px4"), default="in-process",
+                   help="px4: table1 in real time on PX4 SITL (SIH) with the complete app, one PX4 instance per "
+                   "--jobs (companion/px4sitl/evaluate.py)")
+    p.add_argument("--px4-dir", default=None, metavar="DIR", help="PX4 SITL build (default px4.sitl_dir, "
+                   "$PX4_SITL_DIR)")
+    p.add_argument("--motions", default=None, metavar="M1,M2", help="only these gate motions (--autopilot px4)")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_eval)
 
@@ -502,9 +512,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     if args.suite == "tune":
         return _cmd_tune(args, cfg, out_dir)
+    if args.autopilot == "px4":
+        from companion.px4sitl.evaluate import cmd_eval_px4
+
+        return cmd_eval_px4(args, cfg, out_dir)
     try:
         res = run_suite(args.suite, cfg, runs=args.runs, seed=args.seed, n_jobs=min(args.jobs, os.cpu_count() or 1),
-                        progress=not args.no_progress, camera=args.camera)
+                        progress=not args.no_progress, camera=args.camera, protocol=args.protocol)
     except ValueError as e:  # e.g. the rendered camera's detector model is missing
         print(f"companion eval: {e}", file=sys.stderr)
         return 2
@@ -512,13 +526,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(res, indent=1, default=_json_default))
     cmd = "companion eval " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else f"companion eval {args.suite}"
-    md = (f"## {args.suite}\n\nCommand: `{cmd}`  \nRuns: {len(res['runs'])}, seed {args.seed}, "
+    md = (f"## {args.suite}\n\nCommand: `{cmd}`  \nProtocol: {args.protocol}. "
+          f"Runs: {len(res['runs'])}, seed {args.seed}, "
           f"{res['sim_time_s']:.0f} s simulated in {res['wall_time_s']:.1f} s wall on {res['jobs']} process(es). "
           f"Ours first, the paper's in brackets.\n\n{res['markdown']}\n")
     (out_dir / "table.md").write_text(md)
     print(md)
     if not args.no_plots:
-        samples = sample_runs(args.suite, cfg, args.seed)
+        samples = sample_runs(args.suite, cfg, args.seed, protocol=args.protocol)
         plot_trajectories(samples, out_dir / "trajectories.png", f"{args.suite}: sample runs")
         if args.suite == "latency":
             plot_latency(res, out_dir / "latency.png")

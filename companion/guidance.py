@@ -10,35 +10,45 @@ paper                                   here
 lambda_dot = f_est arccos(l . l_prev)   :func:`los_rate` -> ``lambda_dot``
 k_l = l x l_prev,  n = l x k_l          :func:`los_rate` -> ``k_l``, ``n``
 eq:meth_pn_guidance_law (a_n)           :func:`pn_demand`
+k_PN, v_rel_bar, gamma_bar              ``GuidanceParams.k_pn``, ``.v_rel_bar``, ``.gamma_bar``
+f_th upper limit (bar f_th)             ``GuidanceParams.f_max`` (and ``.f_min``, the thrust floor)
+(not in the paper) maximum tilt         ``GuidanceParams.max_tilt`` (thrust axis from vertical)
 eq:meth_rotation_pn_world (R_PN^W)      :func:`pn_frame`
-eq:meth_optimization_problem_roll_pitch :func:`roll_pitch`
+eq:meth_optimization_problem_roll_pitch :func:`roll_pitch`, :func:`angles_of_thrust`
 f_th*, phi*, theta* (closed form)       :func:`solve`
 saturation of infeasible demands        :func:`demand_scale`
 R_B^W = R_PN^W R_y(phi) R_x(theta)      :func:`solve` -> ``R_W_B``
 MAVSDK setpoint (NED/FRD, deg, 0..1)    :func:`to_setpoint`
 =====================================  ==========================================
 
-Field-of-view bound. With ``R_B^PN = R_y(phi) R_x(theta)`` the optical axis is ``R_y(phi) e_x``:
-the real angle between it and the LOS is ``phi`` alone (roll turns the vehicle about the LOS).
-The paper bounds ``cos(phi) cos(theta) >= cos(gamma_bar)``, which is stricter than needed and
-caps the acceleration normal to the LOS at ``g tan(gamma_bar)`` sideways. ``fov="exact"`` (the
-default) bounds the real angle, ``phi <= gamma_bar``, i.e. ``f^2 - t_y^2 <= (t_z / cos gamma_bar)^2``,
-so the optimum is ``f* = min(f_max, hypot(t_y, t_z / cos(gamma_bar)))``. ``fov="paper"`` keeps the
-paper's ``f* = min(f_max, t_z / cos(gamma_bar))`` to reproduce its derivation.
+The problem in thrust coordinates. In the PN frame the thrust vector is
+``t = f R_y(phi) R_x(theta) e_z = f [sin(phi) cos(theta), -sin(theta), cos(phi) cos(theta)]``. The PN law fixes
+its components normal to the LOS, ``(t_y, t_z) = s (n_y a_n, n_z a_n) - (g_y^PN, g_z^PN)`` (s = 1: the demand
+in full), and the paper's objective ``f sin(phi) cos(theta)`` is ``t_x``, the thrust along the LOS. The
+envelope, every constraint convex in ``(t_x, s)``:
 
-Saturation rule (the paper leaves infeasible demands open). With ``t = s a_n^PN - g^PN``
-restricted to the PN y-z plane (the thrust components normal to the LOS that the demand
-fixes), a demand is feasible when the largest thrust the FOV bound allows reaches f_min, (a), when
-``|t| <= f_max``, (b), and for ``fov="paper"`` when ``|t_y| <= t_z tan(gamma_bar)``, (c). For "paper",
-(a) is ``t_z >= f_min cos(gamma_bar)``; all three are convex in ``t``, so the feasible scales ``s``
-form an interval. For "exact", (a) is ``t_z > 0`` and ``t_y^2 + (t_z / cos gamma_bar)^2 >= f_min^2``,
-the outside of an ellipse: along ``t(s)`` the feasible scales are ``[0, r1]`` or ``[r2, ...]``.
-Either way we take the largest feasible ``s`` in [0, 1]: the normal demand keeps its direction and
-is scaled down just enough.
-If even ``s = 0`` is infeasible (LOS steeper than the FOV bound allows with f_min, or an
-airframe too weak to hold the LOS), the vehicle points its optical axis along the LOS
-(phi = theta = 0) with ``f = clip(t_z, f_min, f_max)``: the FOV bound holds exactly and
-the thrust stays in its limits.
+(a) thrust floor ``t_z >= f_min`` (implies ``f >= f_min``; it also keeps ``cos(phi) cos(theta) = t_z / f``
+    away from 0: no knife edge about the LOS);
+(b) ``|t| <= f_max``;
+(c) field of view. ``fov="exact"`` (default) bounds the real angle between the optical axis
+    ``R_y(phi) e_x`` and the LOS, which is ``|phi|`` (roll turns the vehicle about the LOS):
+    ``|t_x| <= t_z tan(gamma_bar)``. ``fov="paper"`` keeps the paper's ``cos(phi) cos(theta) >= cos(gamma_bar)``,
+    i.e. ``t_x^2 + t_y^2 <= (t_z tan(gamma_bar))^2``, stricter: it caps sideways acceleration at
+    ``g tan(gamma_bar)``;
+(d) flight envelope: the thrust axis at most ``max_tilt`` from vertical, ``u . t >= cos(max_tilt) |t|`` with
+    ``u`` world up in the PN frame (a second-order cone). Together with (a) this excludes the knife-edge
+    setpoints (roll +-90 deg at low thrust) the solver used to produce.
+
+``t_x*`` is the largest ``t_x`` that (a)-(d) allow (:func:`_best_tx`; without (d) it is the paper's closed form).
+``phi = atan2(t_x, t_z)`` and ``theta = atan2(-t_y, hypot(t_x, t_z))`` recover the attitude without the
+rounding of an arccos of tiny ratios, so the FOV bound holds to machine precision.
+
+Saturation rule (the paper leaves infeasible demands open): the largest ``s`` in [0, 1] for which (a)-(d)
+have a solution. The constraints are convex in ``(t_x, s)``, so the feasible scales form an interval: the
+normal demand keeps its direction and is scaled down just enough (closed form for (a)-(c), bisection when
+the tilt cone binds). If even ``s = 0`` is infeasible (a LOS steeper than the FOV and tilt bounds together
+allow, or one too steep for the thrust floor), the FOV bound gives way to the envelope: wings level about
+the LOS, the optical axis as close to the LOS as ``max_tilt`` allows, thrust for level flight (``fallback``).
 """
 
 from __future__ import annotations
@@ -51,6 +61,7 @@ import numpy as np
 from companion.frames import euler_ned_deg_from_R, quat_wxyz_from_R
 
 G = 9.81
+DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 50 deg needs 1.56 g of its 2 g)
 g_W = np.array([0.0, 0.0, -G])
 
 _EPS = 1e-12
@@ -68,12 +79,15 @@ class GuidanceParams:
     f_max: float
     f_min: float
     fov: str = "exact"  # "exact": bound the real LOS-to-optical-axis angle; "paper": cos(phi) cos(theta)
+    max_tilt: float = math.radians(DEFAULT_MAX_TILT_DEG)  # thrust axis from vertical, rad
 
     def __post_init__(self) -> None:
         if self.fov not in ("exact", "paper"):
             raise ValueError(f"fov must be 'exact' or 'paper', got {self.fov!r}")
         if not (0.0 < self.gamma_bar < math.pi / 2):
             raise ValueError(f"gamma_bar must be in (0, pi/2) rad, got {self.gamma_bar}")
+        if not (0.0 < self.max_tilt < math.pi / 2):
+            raise ValueError(f"max_tilt must be in (0, pi/2) rad, got {self.max_tilt}")
         if not (0.0 < self.f_min < self.f_max):
             raise ValueError(f"need 0 < f_min < f_max, got f_min={self.f_min}, f_max={self.f_max}")
 
@@ -92,7 +106,7 @@ class ThrustAttitude:
     theta: float  # roll about PN x, rad
     R_W_B: np.ndarray  # commanded attitude, body FLU -> world
     demand_scale: float  # s in [0, 1]: 1 = PN demand met exactly
-    fallback: bool  # True when even s = 0 was infeasible (optical axis on the LOS)
+    fallback: bool  # True when even s = 0 was infeasible (optical axis as near the LOS as the tilt bound allows)
 
 
 def angle_between(a: np.ndarray, b: np.ndarray) -> float:
@@ -157,7 +171,7 @@ def roll_pitch(f_th: float, t_y: float, t_z: float) -> tuple[float, float]:
 
     ``t_y = n_y a_n - g_y^PN`` and ``t_z = n_z a_n - g_z^PN`` (the paper has ``g_y^PN = 0``).
     Returns (theta, phi). Arguments are clipped to [-1, 1] against rounding only: callers
-    pass feasible inputs.
+    pass feasible inputs. :func:`solve` uses the equivalent, rounding-proof :func:`angles_of_thrust`.
     """
     theta = math.asin(max(-1.0, min(1.0, -t_y / f_th)))
     c = math.sqrt(max(f_th * f_th - t_y * t_y, 0.0))
@@ -165,50 +179,159 @@ def roll_pitch(f_th: float, t_y: float, t_z: float) -> tuple[float, float]:
     return theta, phi
 
 
+def angles_of_thrust(t_x: float, t_y: float, t_z: float) -> tuple[float, float, float]:
+    """(f_th, theta, phi) with ``f_th R_y(phi) R_x(theta) e_z = t`` (PN frame).
+
+    ``R_y(phi) R_x(theta) e_z = [sin(phi) cos(theta), -sin(theta), cos(phi) cos(theta)]``, so
+    ``phi = atan2(t_x, t_z)`` and ``theta = atan2(-t_y, hypot(t_x, t_z))``: no arccos of a ratio of
+    two tiny numbers (the old exact-FOV bug: t_z ~ 1e-8 made phi pure rounding, 48.8 deg off the LOS).
+    """
+    c = math.hypot(t_x, t_z)
+    return math.sqrt(c * c + t_y * t_y), math.atan2(-t_y, c), math.atan2(t_x, t_z)
+
+
+def _tilt_margin(t_x: float, b: float, K: float, u_x: float, c: float) -> float:
+    """``u . t - cos(max_tilt) |t|`` for ``t = (t_x, t_y, t_z)``, ``b = u_y t_y + u_z t_z``, ``K = t_y^2 + t_z^2``."""
+    return u_x * t_x + b - c * math.sqrt(t_x * t_x + K)
+
+
+def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams
+              ) -> tuple[float, float, float, float, float, float] | None:
+    """(H, xm, b, K, u_x, c) for fixed normal thrust components, or None when (a)-(c) admit no ``t_x``.
+
+    (a)-(c) of the module docstring give ``|t_x| <= H``; the tilt margin ``h(t_x) = u . t - cos(max_tilt) |t|``
+    is concave in ``t_x``, and ``xm`` is its maximiser clamped into ``[-H, H]``: (d) is satisfiable iff h(xm) >= 0.
+    """
+    if t_z < p.f_min * (1.0 - 1e-12):
+        return None
+    K = t_y * t_y + t_z * t_z
+    r2 = p.f_max * p.f_max - K
+    if r2 < -1e-12 * p.f_max * p.f_max:
+        return None
+    tg = math.tan(p.gamma_bar)
+    if p.fov == "exact":
+        w = t_z * tg
+    else:
+        w2 = t_z * t_z * tg * tg - t_y * t_y
+        if w2 < -1e-12 * (1.0 + K):
+            return None
+        w = math.sqrt(max(w2, 0.0))
+    H = min(w, math.sqrt(max(r2, 0.0)))
+    u_x, u_y, u_z = u
+    c = math.cos(p.max_tilt)
+    s2 = c * c - u_x * u_x
+    # Maximiser of h: finite when the LOS direction lies outside the tilt cone, else at +-inf.
+    xm = u_x * math.sqrt(K / s2) if s2 > 1e-15 else (math.copysign(math.inf, u_x) if u_x != 0.0 else 0.0)
+    return H, max(-H, min(H, xm)), u_y * t_y + u_z * t_z, K, u_x, c
+
+
+def _tilt_room(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams) -> float:
+    """The largest tilt margin any ``t_x`` allowed by (a)-(c) reaches (-inf if none is); concave in s."""
+    e = _envelope(t_y, t_z, u, p)
+    if e is None:
+        return -math.inf
+    _, xm, b, K, u_x, c = e
+    return _tilt_margin(xm, b, K, u_x, c)
+
+
+def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams) -> float | None:
+    """Largest feasible ``t_x`` (thrust along the LOS) for fixed normal components, or None if none is."""
+    e = _envelope(t_y, t_z, u, p)
+    if e is None:
+        return None
+    H, xm, b, K, u_x, c = e
+    if _tilt_margin(H, b, K, u_x, c) >= 0.0:
+        return H
+    tol = 1e-12 * (1.0 + math.sqrt(K) + H)
+    if _tilt_margin(xm, b, K, u_x, c) < -tol:
+        return None
+    # h(xm) >= 0 > h(H): the largest feasible t_x is the root of h in [xm, H]. Roots of the squared form
+    # (u_x^2 - c^2) x^2 + 2 u_x b x + b^2 - c^2 K = 0 (one of them may belong to the mirrored cone).
+    A, B, C = u_x * u_x - c * c, 2.0 * u_x * b, b * b - c * c * K
+    cands: list[float] = []
+    if abs(A) > 1e-14 * (1.0 + abs(B) + abs(C)):
+        disc = B * B - 4.0 * A * C
+        if disc >= 0.0:
+            q = -0.5 * (B + math.copysign(math.sqrt(disc), B))
+            cands = [q / A] + ([C / q] if q != 0.0 else [])
+    elif B != 0.0:
+        cands = [-C / B]
+    best = None
+    for x in cands:
+        if xm - tol <= x <= H + tol and abs(_tilt_margin(x, b, K, u_x, c)) <= 1e-9 * (1.0 + math.sqrt(K)):
+            best = x if best is None else max(best, x)
+    if best is None:  # rounding defeated the closed form: bisect (h(lo) >= 0 > h(hi))
+        lo, hi = xm, H
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if _tilt_margin(mid, b, K, u_x, c) >= 0.0 else (lo, mid)
+        best = lo
+    return max(xm, min(H, best))
+
+
 def _max_scale_linear(c0: float, c1: float) -> float:
     """Largest s >= 0 with c0 + c1 s >= 0 (given c0 >= 0)."""
     return math.inf if c1 >= 0.0 else c0 / -c1
 
 
-def demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidanceParams) -> float | None:
+def demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidanceParams,
+                 u: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> float | None:
     """Largest s in [0, 1] for which the demand ``s * (a_y, a_z)`` is feasible; None if s = 0 is not.
 
-    See the module docstring for the constraints (a), (b), (c).
+    ``u`` is world up in the PN frame (its tilt cone). Every constraint (a)-(d) of :func:`_best_tx` is convex
+    in ``(t_x, s)``, so the feasible scales form an interval: closed-form bounds for (a), (b) and the paper's
+    (c), then bisection when the tilt cone (d) is what binds.
     """
-    cg = math.cos(p.gamma_bar)
-    # Linear constraints c0 + c1 s >= 0, with t_y = s a_y - g_y and t_z = s a_z - g_z.
-    if p.fov == "paper":
-        tg = math.tan(p.gamma_bar)
-        lin: tuple[tuple[float, float], ...] = (
-            (-g_z - p.f_min * cg, a_z),  # (a) t_z >= f_min cos(gamma_bar)
-            (-g_z * tg + g_y, a_z * tg - a_y),  # (c) t_z tan - t_y >= 0
-            (-g_z * tg - g_y, a_z * tg + a_y),  # (c) t_z tan + t_y >= 0
-        )
-    else:
-        lin = ((-g_z - 1e-9 * G, a_z),)  # (a) t_z > 0: the optical axis can be within 90 deg of the LOS
-    # (b) |s A - G|^2 <= f_max^2  <=>  qa s^2 + qb s + qc <= 0
-    qa = a_y * a_y + a_z * a_z
+    def feasible(s: float) -> bool:
+        return _best_tx(s * a_y - g_y, s * a_z - g_z, u, p) is not None
+
+    if not feasible(0.0):
+        return None
+    if feasible(1.0):
+        return 1.0
+    s = _max_scale_linear(max(-g_z - p.f_min, 0.0), a_z)  # (a) t_z >= f_min
+    qa = a_y * a_y + a_z * a_z  # (b) |t_normal|^2 <= f_max^2  <=>  qa s^2 + qb s + qc <= 0
     qb = -2.0 * (a_y * g_y + a_z * g_z)
     qc = g_y * g_y + g_z * g_z - p.f_max * p.f_max
-    # (a), exact: h(s) = t_y^2 + (t_z / cos)^2 - f_min^2 >= 0, a convex quadratic in s
-    ha = a_y * a_y + (a_z / cg) ** 2
-    hb = -2.0 * (a_y * g_y + a_z * g_z / (cg * cg))
-    hc = g_y * g_y + (g_z / cg) ** 2 - p.f_min * p.f_min
-    tol = 1e-12 * (1.0 + p.f_max * p.f_max)
-    if any(c0 < -1e-12 * (1.0 + abs(c0)) for c0, _ in lin) or qc > tol:
-        return None
-    if p.fov == "exact" and hc < -tol:
-        return None
-    s = 1.0
-    for c0, c1 in lin:
-        s = min(s, _max_scale_linear(max(c0, 0.0), c1))
     if qa > _EPS:
         s = min(s, (-qb + math.sqrt(max(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa))
-    s = max(s, 0.0)
-    if p.fov == "exact" and ha > _EPS and (ha * s + hb) * s + hc < 0.0:
-        # s fell between the roots of h: the largest feasible scale is the lower root.
-        s = max(0.0, (-hb - math.sqrt(max(hb * hb - 4.0 * ha * hc, 0.0))) / (2.0 * ha))
-    return s
+    if p.fov == "paper":  # (c) necessary part: |t_y| <= t_z tan(gamma_bar)
+        tg = math.tan(p.gamma_bar)
+        s = min(s, _max_scale_linear(max(-g_z * tg + g_y, 0.0), a_z * tg - a_y),
+                _max_scale_linear(max(-g_z * tg - g_y, 0.0), a_z * tg + a_y))
+    s = max(0.0, min(1.0, s))
+    if feasible(s):
+        return s
+    # Only the tilt cone binds on [0, s]: the root of the concave tilt room r(s) (r(0) >= 0 > r(s)),
+    # by regula falsi with the Illinois modification, keeping the feasible end.
+    def room(x: float) -> float:
+        return _tilt_room(x * a_y - g_y, x * a_z - g_z, u, p)
+
+    lo, hi = 0.0, s
+    r_lo, r_hi = room(lo), room(hi)
+    side = 0
+    for _ in range(60):
+        if hi - lo <= 1e-13 or not math.isfinite(r_hi):
+            break
+        x = hi - r_hi * (hi - lo) / (r_hi - r_lo) if r_hi != r_lo else 0.5 * (lo + hi)
+        if not (lo < x < hi):
+            x = 0.5 * (lo + hi)
+        r = room(x)
+        if r >= 0.0:
+            lo, r_lo = x, r
+            if side == -1:
+                r_hi *= 0.5
+            side = -1
+        else:
+            hi, r_hi = x, r
+            if side == 1:
+                r_lo *= 0.5
+            side = 1
+        if 0.0 <= r_lo <= 1e-12:
+            break
+    while not feasible(lo) and lo > 0.0:  # rounding at the boundary: step back inside
+        lo = max(0.0, lo - 1e-12 - 1e-9 * lo)
+    return lo
 
 
 def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
@@ -218,29 +341,45 @@ def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
 
 
 def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
-    """Closed-form optimum of eq:meth_optimization_problem_simplified, with saturation.
+    """Closed-form optimum of eq:meth_optimization_problem_simplified with the flight envelope, and saturation.
 
-    ``f_th* = min(f_max, hypot(n_y a_n - g_y^PN, (n_z a_n - g_z^PN) / cos(gamma_bar)))`` for the exact
-    FOV bound, ``min(f_max, (n_z a_n - g_z^PN) / cos(gamma_bar))`` for the paper's;
-    ``phi* = phi(f_th*)``, ``theta* = theta(f_th*)``, attitude ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``.
-    ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world frame).
+    With ``t = s a_n^PN - g^PN`` normal to the LOS, the thrust along the LOS ``t_x = f sin(phi) cos(theta)`` is
+    the objective; ``t_x*`` is the largest value the FOV bound, ``f_max`` and the tilt bound allow (without the
+    tilt bound this is the paper's ``f_th* = min(f_max, (n_z a_n - g_z^PN) / cos(gamma_bar))`` for ``fov="paper"``
+    and ``min(f_max, hypot(t_y, t_z / cos(gamma_bar)))`` for the exact bound). Then
+    ``f_th* = |t|``, ``phi* = atan2(t_x, t_z)``, ``theta* = atan2(-t_y, hypot(t_x, t_z))``,
+    ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world).
     """
     R_W_PN = pn_frame(l, y_ref)
     ax, ay, az = a_n.tolist()
-    (_, yx, zx), (_, yy, zy), (_, yz, zz) = R_W_PN.tolist()
+    (_, yx, zx), (_, yy, zy), (lz, yz, zz) = R_W_PN.tolist()
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
     g_y, g_z = -G * yz, -G * zz  # g^PN = R_W^PN g: its y part is 0 unless the LOS is vertical
-    s = demand_scale(a_y, a_z, g_y, g_z, p)
+    u = (lz, yz, zz)  # world up in the PN frame: the axis of the tilt cone
+    s = demand_scale(a_y, a_z, g_y, g_z, p, u)
     if s is None:
-        f = min(p.f_max, max(p.f_min, -g_z))
-        return ThrustAttitude(f, 0.0, 0.0, R_W_PN, 0.0, True)
+        return _fallback(R_W_PN, u, p)
     t_y, t_z = s * a_y - g_y, s * a_z - g_z
-    f_fov = t_z / math.cos(p.gamma_bar)  # largest thrust the FOV bound allows
-    if p.fov == "exact":
-        f_fov = math.hypot(t_y, f_fov)
-    f = max(min(p.f_max, f_fov), p.f_min)  # only rounding can put it below f_min (constraint (a))
-    theta, phi = roll_pitch(f, t_y, t_z)
+    t_x = _best_tx(t_y, t_z, u, p)
+    if t_x is None:  # cannot happen: demand_scale checked this very s
+        return _fallback(R_W_PN, u, p)
+    f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
+    f = min(p.f_max, max(f, p.f_min))  # rounding only: (a) gives |t| >= t_z >= f_min
     return ThrustAttitude(f, phi, theta, R_W_PN @ _R_y_R_x(phi, theta), s, False)
+
+
+def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> ThrustAttitude:
+    """No demand is feasible (LOS steeper than the FOV and tilt bounds together allow, or too steep for f_min).
+
+    Wings level about the LOS (theta = 0) and the optical axis as close to the LOS as the tilt bound allows:
+    the thrust axis ``(sin phi, 0, cos phi)`` makes the angle ``|phi - alpha|`` with up, ``alpha = atan2(u_x, u_z)``,
+    so ``phi = clip(0, alpha - max_tilt, alpha + max_tilt)``. Thrust holds altitude, within the thrust limits.
+    """
+    alpha = math.atan2(u[0], u[2])
+    phi = max(alpha - p.max_tilt, min(alpha + p.max_tilt, 0.0))
+    up = u[0] * math.sin(phi) + u[2] * math.cos(phi)  # cos(tilt) > 0
+    f = min(p.f_max, max(p.f_min, G / up if up > _EPS else p.f_min))
+    return ThrustAttitude(f, phi, 0.0, R_W_PN @ _R_y_R_x(phi, 0.0), 0.0, True)
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,3 +417,15 @@ def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:
     c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return Setpoint(0.0, 0.0, yaw_deg, hover_thrust, R)
+
+
+def straight_pass(l: np.ndarray, f_min: float, f_max: float, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
+    """The gate pass: zero PN demand, optical axis (body x) on the LOS ``l`` (world, unit), no roll about it
+    (body y horizontal: the PN frame with phi = theta = 0) and the thrust whose vertical part carries the
+    weight, ``f = g / (e_z . z_B)`` within [f_min, f_max]. The net acceleration is then horizontal and along
+    the LOS's heading (``-g tan(elevation)``): no climb, no sink, no bank held through the gate.
+    """
+    R_W_PN = pn_frame(l, y_ref)
+    up = float(R_W_PN[2, 2])  # vertical part of the thrust axis: cos(LOS elevation)
+    f = min(f_max, max(f_min, G / max(up, 1e-3)))
+    return ThrustAttitude(f, 0.0, 0.0, R_W_PN, 0.0, False)

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from companion import frames
+from companion import frames, metrics
 from companion.config import Config, load_config
 from companion.controller import ControlOutput, PNController
 from perception.types import BoundingBox
@@ -27,9 +27,11 @@ def ctrl() -> PNController:
 
 def test_step_accepts_no_position_or_velocity() -> None:
     sig = inspect.signature(PNController.step)
-    assert list(sig.parameters) == ["self", "t", "box", "q_wxyz_ned_frd"]
+    # Box, attitude estimate, optionally the accelerometer (specific force) and the current time: nothing else.
+    assert list(sig.parameters) == ["self", "t", "box", "q_wxyz_ned_frd", "accel_frd", "t_now"]
     hints = typing.get_type_hints(PNController.step)
     assert hints["box"] == BoundingBox | None
+    assert hints["accel_frd"] == np.ndarray | None and hints["t_now"] == float | None
     forbidden = ("pos", "vel", "gps", "ekf", "odom", "truth", "state")
     for name in list(sig.parameters) + [f for f in BoundingBox.__dataclass_fields__]:
         assert not any(w in name.lower() for w in forbidden), name
@@ -111,9 +113,14 @@ def test_any_attitude_and_box_gives_a_finite_setpoint_within_limits(seed, cx, cy
         sp = o.setpoint
         assert all(math.isfinite(v) for v in (sp.roll_deg, sp.pitch_deg, sp.yaw_deg, sp.thrust))
         assert cfg.airframe.thrust_min <= sp.thrust <= 1.0
-        if o.los_ned is not None:  # the commanded optical axis stays within gamma_bar of the LOS
+        # The flight envelope holds whatever the LOS: tilt of the thrust axis, measured from the Euler angles.
+        assert float(metrics.tilt_deg(sp.roll_deg, sp.pitch_deg)) <= cfg.airframe.max_tilt + 1e-6
+        if o.los_ned is not None:
+            # The commanded optical axis stays within gamma_bar of the LOS, unless the LOS is steeper than the
+            # tilt envelope lets the optical axis follow (then it is exactly as far off as the envelope forces).
             ang = math.degrees(math.acos(min(1.0, float(sp.R_ned_frd[:, 0] @ o.los_ned))))
-            assert ang <= cfg.guidance.gamma_bar + 1e-6
+            elevation = math.degrees(math.asin(min(1.0, abs(float(o.los_ned[2])))))
+            assert ang <= max(cfg.guidance.gamma_bar, elevation - cfg.airframe.max_tilt) + 1e-6
 
 
 def test_hover_thrust_from_the_autopilot(ctrl) -> None:

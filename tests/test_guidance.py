@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from companion import guidance
+from companion import guidance, metrics
 from companion.frames import F_FRD_FLU, P_NED_ENU
 from companion.guidance import G, GuidanceParams, g_W
 
@@ -39,10 +39,10 @@ def unit_vectors(draw, vertical_bias: bool = True) -> np.ndarray:
 
 
 @st.composite
-def params(draw, gamma_deg=(5.0, 30.0)) -> GuidanceParams:
+def params(draw, gamma_deg=(2.0, 60.0), tilt_deg=(15.0, 85.0)) -> GuidanceParams:
     hover = draw(st.floats(0.2, 0.8))
     tw = draw(st.floats(1.2, 4.0))
-    thrust_min = draw(st.floats(0.02, min(0.3, hover * 0.9)))
+    thrust_min = draw(st.one_of(st.just(0.01), st.floats(0.01, min(0.3, hover * 0.9))))
     return GuidanceParams(
         k_pn=draw(st.floats(0.3, 3.0)),
         v_rel_bar=draw(st.floats(1.0, 40.0)),
@@ -50,6 +50,7 @@ def params(draw, gamma_deg=(5.0, 30.0)) -> GuidanceParams:
         f_max=G * min(tw, 1.0 / hover),
         f_min=G * thrust_min / hover,
         fov=draw(st.sampled_from(["exact", "paper"])),
+        max_tilt=math.radians(draw(st.floats(*tilt_deg))),
     )
 
 
@@ -75,6 +76,32 @@ def angle(a: np.ndarray, b: np.ndarray) -> float:
     return math.atan2(np.linalg.norm(np.cross(a, b)), float(a @ b))
 
 
+def tilt(R_W_B: np.ndarray) -> float:
+    """Angle of the thrust axis (body z) from world vertical, rad."""
+    return angle(R_W_B[:, 2], np.array([0.0, 0.0, 1.0]))
+
+
+def feasible_at_zero_demand(l: np.ndarray, p: GuidanceParams, n: int = 4001) -> bool:  # noqa: E741
+    """Brute force: is there a thrust along the LOS t_x that, with zero normal acceleration, keeps the FOV bound,
+    the tilt bound and the thrust limits? Computed from world vectors, not from the solver's formulas."""
+    R_pn = guidance.pn_frame(l)
+    y, z = R_pn[:, 1], R_pn[:, 2]
+    t_y, t_z = -float(y @ g_W), -float(z @ g_W)  # thrust normal to the LOS that cancels gravity there
+    if t_z < p.f_min:
+        return False
+    for t_x in np.linspace(-p.f_max, p.f_max, n):
+        t = t_x * l + t_y * y + t_z * z
+        f = float(np.linalg.norm(t))
+        if not (p.f_min <= f <= p.f_max) or angle(t, np.array([0.0, 0.0, 1.0])) > p.max_tilt:
+            continue
+        # Body x: in the plane of the thrust and the LOS, normal to the thrust (roll about the LOS only).
+        x = l - (l @ t) / f**2 * t
+        fov = angle(x, l) if p.fov == "exact" else math.acos(min(1.0, t_z / f))
+        if fov <= p.gamma_bar:
+            return True
+    return False
+
+
 # --- properties over thousands of random cases -------------------------------------------------
 
 
@@ -91,17 +118,25 @@ def test_solver_invariants(data) -> None:
     assert all(math.isfinite(x) for x in (sol.f_th, sol.phi, sol.theta, sol.demand_scale))
     assert np.all(np.isfinite(R))
     assert np.allclose(R.T @ R, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0, abs=1e-9)
-    # Thrust in its limits.
+    # Thrust in its limits, and the thrust axis within the tilt envelope, always (fallback included).
     assert p.f_min - 1e-9 <= sol.f_th <= p.f_max + 1e-9
-    # The real angle between the commanded optical axis (body x) and the LOS stays within gamma_bar.
-    assert angle(R[:, 0], l) <= p.gamma_bar + 1e-9
+    assert tilt(R) <= p.max_tilt + 1e-9
+    # The real angle between the commanded optical axis (body x) and the LOS stays within gamma_bar, unless
+    # no attitude can keep it within the tilt envelope (then it is as small as the envelope allows).
+    if not sol.fallback:
+        assert angle(R[:, 0], l) <= p.gamma_bar + 1e-9
+    else:
+        assert sol.demand_scale == 0.0 and sol.theta == 0.0
+        if abs(l[2]) < 1.0 - 1e-9:  # a vertical LOS has no PN frame to compute the brute force in
+            assert not feasible_at_zero_demand(l, p, n=401)
     assert 0.0 <= sol.demand_scale <= 1.0
     acc = achieved_acc(R, sol.f_th)
     acc_normal = acc - (acc @ l) * l
     if not sol.fallback:
         # The honoured fraction of the demand is met exactly normal to the LOS, and the rest goes forward.
         assert np.allclose(acc_normal, sol.demand_scale * a_n, atol=1e-9 * (1 + np.linalg.norm(a_n)))
-        assert float(acc @ l) >= float(g_W @ l) - 1e-9  # f sin(phi) cos(theta) >= 0
+        if tilt(R) < p.max_tilt - 1e-7:  # f sin(phi) cos(theta) >= 0 unless the envelope holds the vehicle back
+            assert float(acc @ l) >= float(g_W @ l) - 1e-9
     if sol.demand_scale == 1.0 and not sol.fallback:
         assert np.allclose(acc_normal, a_n, atol=1e-9)
 
@@ -189,13 +224,21 @@ def fov_margin(phi: float, theta: float, p: GuidanceParams) -> float:
     return float(axis[0]) - math.cos(p.gamma_bar)
 
 
-def numeric_optimum(a_y: float, a_z: float, g_z: float, p: GuidanceParams) -> tuple[float, float, float, float]:
+def tilt_margin(phi: float, theta: float, up_pn: np.ndarray, p: GuidanceParams) -> float:
+    """>= 0 when the thrust axis R_y(phi) R_x(theta) e_z is within max_tilt of world up (given in the PN frame)."""
+    axis = Rotation.from_euler("YX", [phi, theta]).apply([0.0, 0.0, 1.0])
+    return float(axis @ up_pn) - math.cos(p.max_tilt)
+
+
+def numeric_optimum(a_y: float, a_z: float, g_z: float, p: GuidanceParams,
+                    up_pn: np.ndarray) -> tuple[float, float, float, float]:
     """maximise f sin(phi) cos(theta) s.t. [n_y a_n, n_z a_n] = [-f sin theta, f cos phi cos theta + g_z],
-    0 <= f <= f_max, orientation in Q_fov — solved by SLSQP from several starts."""
+    0 <= f <= f_max, orientation in Q_fov and within the tilt bound — solved by SLSQP from several starts."""
     cons = [
         {"type": "eq", "fun": lambda x: a_y + x[0] * math.sin(x[2])},
         {"type": "eq", "fun": lambda x: a_z - (x[0] * math.cos(x[1]) * math.cos(x[2]) + g_z)},
         {"type": "ineq", "fun": lambda x: fov_margin(x[1], x[2], p)},
+        {"type": "ineq", "fun": lambda x: tilt_margin(x[1], x[2], up_pn, p)},
     ]
     best = None
     for f0 in (0.3, 0.6, 0.95):
@@ -206,7 +249,8 @@ def numeric_optimum(a_y: float, a_z: float, g_z: float, p: GuidanceParams) -> tu
                 bounds=[(0.0, p.f_max), (-math.pi / 2, math.pi / 2), (-math.pi / 2, math.pi / 2)],
                 constraints=cons, method="SLSQP", options={"ftol": 1e-13, "maxiter": 500},
             )
-            ok = res.success and all(abs(c["fun"](res.x)) < 1e-7 for c in cons[:2]) and cons[2]["fun"](res.x) > -1e-9
+            ok = (res.success and all(abs(c["fun"](res.x)) < 1e-7 for c in cons[:2])
+                  and all(c["fun"](res.x) > -1e-9 for c in cons[2:]))
             if ok and (best is None or res.fun < best.fun):
                 best = res
     assert best is not None, "the numerical optimiser found no feasible point"
@@ -226,8 +270,8 @@ def test_closed_form_matches_numeric_optimisation(data) -> None:
     R_pn = guidance.pn_frame(l)
     a_y, a_z, g_z = float(R_pn[:, 1] @ a_n), float(R_pn[:, 2] @ a_n), float(R_pn[:, 2] @ g_W)
     obj_closed = sol.f_th * math.sin(sol.phi) * math.cos(sol.theta)
-    obj_num, f_num, _, _ = numeric_optimum(a_y, a_z, g_z, p)
-    assert obj_closed == pytest.approx(obj_num, abs=1e-5 * (1 + obj_num))
+    obj_num, f_num, _, _ = numeric_optimum(a_y, a_z, g_z, p, R_pn.T @ np.array([0.0, 0.0, 1.0]))
+    assert obj_closed == pytest.approx(obj_num, abs=1e-5 * (1 + abs(obj_num)))
     assert obj_closed >= obj_num - 1e-6  # the closed form is never worse than the optimiser
     # The optimiser may return an off-optimal f only where the objective is flat in it.
     assert sol.f_th == pytest.approx(f_num, abs=1e-3 * p.f_max) or abs(obj_closed - obj_num) < 1e-7
@@ -252,10 +296,15 @@ def test_saturation_scale_is_the_largest_feasible(data) -> None:
     a_y, a_z, g_z = s * float(R_pn[:, 1] @ a_n), s * float(R_pn[:, 2] @ a_n), float(R_pn[:, 2] @ g_W)
     # Feasibility as a least-violation problem over (f, phi, theta).
 
+    up_pn = R_pn.T @ np.array([0.0, 0.0, 1.0])
+
     def violation(x):
         f, phi, theta = x
         eq = (a_y + f * math.sin(theta)) ** 2 + (a_z - f * math.cos(phi) * math.cos(theta) - g_z) ** 2
-        return eq + max(0.0, -fov_margin(phi, theta, p)) ** 2
+        # (a) of the solver: the thrust floor on the component normal to the LOS in the PN x-z plane.
+        floor = max(0.0, p.f_min - f * math.cos(phi) * math.cos(theta))
+        return eq + max(0.0, -fov_margin(phi, theta, p)) ** 2 + max(0.0, -tilt_margin(phi, theta, up_pn, p)) ** 2 \
+            + floor**2
 
     best = min(
         minimize(violation, [f0 * p.f_max, phi0, th0], method="L-BFGS-B",
@@ -326,11 +375,69 @@ def test_large_downward_demand_saturates_with_positive_thrust(x500) -> None:
 
 
 def test_vertical_los_falls_back_without_nan(x500) -> None:
+    """Gate straight below / above: no attitude keeps it in view within the tilt envelope. The envelope wins:
+    tilt exactly max_tilt towards the LOS, optical axis 90 deg - max_tilt off it, thrust for level flight."""
     for l in (np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, 1.0])):  # noqa: E741
         sol = guidance.solve(l, np.zeros(3), x500)
         assert sol.fallback and sol.demand_scale == 0.0
-        assert np.allclose(sol.R_W_B[:, 0], l)  # optical axis on the LOS
-        assert sol.f_th == pytest.approx(x500.f_min)
+        assert np.all(np.isfinite(sol.R_W_B))
+        assert tilt(sol.R_W_B) == pytest.approx(x500.max_tilt)
+        assert angle(sol.R_W_B[:, 0], l) == pytest.approx(math.pi / 2 - x500.max_tilt)
+        assert sol.f_th == pytest.approx(G / math.cos(x500.max_tilt))
+        assert achieved_acc(sol.R_W_B, sol.f_th)[2] == pytest.approx(0.0, abs=1e-9)  # holds altitude
+
+
+def test_exact_fov_regression_tiny_thrust_floor() -> None:
+    """The case from the issue: t_z was driven to ~1e-8, theta to 90 deg, and phi came from rounding, so the
+    optical axis ended 48.8 deg off the LOS with gamma_bar 21.05 deg."""
+    p = GuidanceParams(k_pn=2.1, v_rel_bar=15.0, gamma_bar=math.radians(21.05), f_max=19.62, f_min=0.5,
+                       fov="exact")
+    l = np.array([0.5619, -0.68914, 0.457553])  # noqa: E741
+    l = l / np.linalg.norm(l)  # noqa: E741
+    a_n = np.array([14.629774, -27.276636, -59.048729])
+    sol = guidance.solve(l, a_n, p)
+    assert np.all(np.isfinite(sol.R_W_B)) and not sol.fallback
+    assert angle(sol.R_W_B[:, 0], l) <= p.gamma_bar + 1e-12
+    assert tilt(sol.R_W_B) <= p.max_tilt + 1e-12
+    assert abs(sol.theta) < math.radians(80.0)
+    assert p.f_min <= sol.f_th <= p.f_max
+    sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, 0.5, 0.025)
+    assert float(metrics.tilt_deg(sp.roll_deg, sp.pitch_deg)) <= math.degrees(p.max_tilt) + 1e-9
+
+
+def test_no_knife_edge_for_a_large_downward_sideways_demand() -> None:
+    """The issue's example: l = [1, 0, 0], a_n = [0, 10, -30] used to give roll -90 deg at thrust 0.167.
+    Now the roll stays within the tilt envelope and the achieved normal acceleration keeps the demand's
+    direction (the demand is scaled, not bent)."""
+    for fov in ("exact", "paper"):
+        p = GuidanceParams(2.1, 15.0, math.radians(21.05), 2 * G, 0.2 * G, fov, max_tilt=math.radians(50.0))
+        l, a_n = np.array([1.0, 0.0, 0.0]), np.array([0.0, 10.0, -30.0])  # noqa: E741
+        sol = guidance.solve(l, a_n, p)
+        sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, 0.5, 0.1)
+        assert abs(sp.roll_deg) <= 50.0 + 1e-9 and float(metrics.tilt_deg(sp.roll_deg, sp.pitch_deg)) <= 50.0 + 1e-9
+        assert 0.0 < sol.demand_scale < 1.0 and not sol.fallback
+        acc = achieved_acc(sol.R_W_B, sol.f_th)
+        acc_n = acc - (acc @ l) * l
+        assert np.allclose(acc_n, sol.demand_scale * a_n, atol=1e-9)
+
+
+@settings(max_examples=1500, deadline=None)
+@given(data=st.data())
+def test_tilt_bound_on_setpoints_with_tiny_thrust_floor(data) -> None:
+    """The setpoint PX4 gets (NED/FRD Euler) stays inside the envelope, measured as metrics.tilt_deg does, with
+    thrust_min down to 0.01 and gamma_bar from 2 to 60 deg; thrust within [thrust_min, 1]."""
+    hover = data.draw(st.floats(0.3, 0.7))
+    thrust_min = data.draw(st.floats(0.01, 0.05))
+    p = GuidanceParams(2.1, 15.0, math.radians(data.draw(st.floats(2.0, 60.0))), G * min(2.0, 1 / hover),
+                       G * thrust_min / hover, data.draw(st.sampled_from(["exact", "paper"])),
+                       max_tilt=math.radians(data.draw(st.floats(30.0, 70.0))))
+    l = data.draw(unit_vectors())  # noqa: E741
+    sol = guidance.solve(l, data.draw(demands(l, max_mag=300.0)), p)
+    sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, hover, thrust_min)
+    assert float(metrics.tilt_deg(sp.roll_deg, sp.pitch_deg)) <= math.degrees(p.max_tilt) + 1e-6
+    assert thrust_min <= sp.thrust <= 1.0
+    if not sol.fallback:
+        assert angle(sp.R_ned_frd[:, 0], P_NED_ENU @ l) <= p.gamma_bar + 1e-9
 
 
 def test_sideways_demand_exact_fov_keeps_it_paper_fov_caps_it() -> None:

@@ -45,6 +45,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--log-dir", help="parent folder of the flight log (overrides log.directory)")
     p.add_argument("--status", action="store_true", help="live status line on stderr")
     p.add_argument("--no-plot", action="store_true", help="do not write plot.png at the end")
+    from companion.app.record import add_record_arguments
+
+    add_record_arguments(p)
+    p.add_argument("--shadow", action="store_true",
+                   help="shadow mode: the whole pipeline beside the pilot; setpoints logged and plotted, never sent "
+                        "(no arming, no mode change, no offboard)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="shadow mode: stop after S seconds")
     p.set_defaults(func=_cmd_fly)
 
     lp = subparsers.add_parser("log", help="flight logs: plot, summary, export")
@@ -71,13 +78,87 @@ def _overrides(args: argparse.Namespace) -> list[str]:
     return ov
 
 
-def _cmd_fly(args: argparse.Namespace) -> int:
-    from companion.config import load_config
+class StartRefused(RuntimeError):
+    """The flight cannot start (vehicle locked by another app, flight log unusable): one line, exit 2.
 
+    Raised before the app connects, so nothing has been commanded.
+    """
+
+
+def _cmd_fly(args: argparse.Namespace) -> int:
+    from companion.app.record import is_recording, record_kwargs
+    from companion.config import load_config
+    from companion.configbase import ConfigError
+
+    if args.record and is_recording(args.record):
+        raise ConfigError(f"--record {args.record}: already holds a recording (index.csv); choose a new folder")
     cfg = load_config(args.config, _overrides(args))
-    reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot))
+    if args.shadow:
+        from companion.app.shadow import shadow
+
+        code, folder, _ = asyncio.run(shadow(cfg, duration=args.duration, plot=not args.no_plot, record=args.record,
+                                             record_kw=record_kwargs(args)))
+        print(f"companion: shadow log {folder}", file=sys.stderr)
+        return code
+    try:
+        reason, folder, _ = run_flight_process(fly(cfg, status_line=args.status, plot=not args.no_plot,
+                                                   record=args.record, record_kw=record_kwargs(args)))
+    except StartRefused as e:
+        print(f"companion fly: {e}", file=sys.stderr)
+        return 2
     print(f"companion: flight log {folder}", file=sys.stderr)
-    return int(reason)
+    return exit_when_done(int(reason))
+
+
+def run_flight_process(main: Awaitable[Any], executor_grace: float = 2.0) -> Any:
+    """``asyncio.run`` for the CLI, without waiting forever for a hung worker thread.
+
+    asyncio.run() joins the default executor's threads at the end (Python 3.11: without a timeout),
+    and a detector call that never returns (a hung driver, a wedged model) would keep the process
+    alive long after the flight reached its safe state. Here the workers get ``executor_grace``
+    seconds; ``exit_when_done`` handles one that is still stuck.
+    """
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    executor = ThreadPoolExecutor(thread_name_prefix="companion-worker")
+    loop = asyncio.new_event_loop()
+    loop.set_default_executor(executor)
+    try:
+        asyncio.set_event_loop(loop)
+        return loop.run_until_complete(main)
+    finally:
+        try:
+            tasks = asyncio.all_tasks(loop)
+            for task in tasks:
+                task.cancel()
+            loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+            loop.run_until_complete(loop.shutdown_asyncgens())
+        finally:
+            executor.shutdown(wait=False, cancel_futures=True)
+            deadline = time.monotonic() + executor_grace
+            for t in threading.enumerate():
+                if t.name.startswith("companion-worker"):
+                    t.join(max(0.0, deadline - time.monotonic()))
+            asyncio.set_event_loop(None)
+            loop.close()
+
+
+def exit_when_done(code: int) -> int:
+    """The flight is over and its log closed: if a worker thread still runs (a hung detector call), end the
+    process now with the flight's exit code instead of waiting for it at interpreter exit forever."""
+    import threading
+
+    stuck = [t.name for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon
+             and t.is_alive()]
+    if not stuck:
+        return code
+    print(f"companion: worker thread(s) {', '.join(stuck)} still running after the safe end: exiting anyway "
+          f"(exit {code})", file=sys.stderr)
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(code)
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
@@ -91,13 +172,29 @@ def _cmd_plot(args: argparse.Namespace) -> int:
             print(f"companion log plot: {folder}: no flight log here", file=sys.stderr)
             return 1
         folder = latest
-    out = plot_flight(folder, args.output)
+    try:
+        out = plot_flight(folder, args.output)
+    except Exception as e:  # a corrupt or foreign file in the folder: one line, never a traceback
+        text = " ".join(str(e).split())[:200]
+        print(f"companion log plot: {folder}: cannot plot ({type(e).__name__}: {text})", file=sys.stderr)
+        return 1
     print(out)
     return 0
 
 
 def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
-    """(camera source, perception, run perception in a thread) for the configured camera."""
+    """(camera source, perception, run perception in a thread) for the configured camera.
+
+    Every source is wrapped in CheckedCamera: each frame is checked for plausibility (size, type,
+    timestamps, frozen content) before perception sees it.
+    """
+    from companion.app.camera import CheckedCamera
+
+    cam, perception, in_thread = _build_camera(cfg, link, log)
+    return CheckedCamera.from_config(cam, cfg), perception, in_thread
+
+
+def _build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
     from companion.app.flight import gate_logger
     from companion.app.synthcam import SyntheticCamera, VehiclePose
 
@@ -110,6 +207,10 @@ def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
                 return None
             # Stamped with the attitude sample's time: the frame is "captured" at the instant whose
             # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
+            source = getattr(link, "truth_source", None)
+            if source is not None:  # a simulator's truth (PX4 SIH): its true pose at that instant
+                true = source.at(att.t_rx)
+                return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
             return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
 
         cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
@@ -132,26 +233,68 @@ async def fly(
     stderr: Any = sys.stderr,
     handle_signals: bool = True,
     alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
+    record: str | Path | None = None,
+    record_kw: dict[str, Any] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
     """One flight, start to safe state. Returns (outcome, flight folder, summary).
 
     ``alongside(app)`` runs next to the flight and is cancelled when it ends (tests inject faults with it).
     """
+    from companion.app.vehiclelock import VehicleBusy, VehicleLock
+
+    # One app per vehicle, held until the link is closed (then nothing of ours commands it any more).
+    lock = VehicleLock(cfg.link.url)
+    try:
+        lock.acquire()
+    except VehicleBusy as e:
+        raise StartRefused(str(e)) from None
+    try:
+        return await _fly_locked(cfg, status_line=status_line, plot=plot, stderr=stderr,
+                                 handle_signals=handle_signals, alongside=alongside, record=record,
+                                 record_kw=record_kw)
+    finally:
+        lock.release()
+
+
+async def _fly_locked(
+    cfg: Config,
+    *,
+    status_line: bool,
+    plot: bool,
+    stderr: Any,
+    handle_signals: bool,
+    alongside: Callable[[FlightApp], Awaitable[None]] | None,
+    record: str | Path | None,
+    record_kw: dict[str, Any] | None,
+) -> tuple[Reason, Path, dict[str, Any]]:
     from companion.app.flight import FlightApp
     from companion.app.link import VehicleLink
     from companion.app.notify import Notifier
     from companion.app.states import Reason
     from companion.config import config_as_dict
-    from companion.flightlog import FlightLog
+    from companion.flightlog import FlightLog, FlightLogError
 
-    log = FlightLog.create(cfg.log.directory, config_as_dict(cfg), flush_interval=cfg.log.flush_interval)
+    try:  # refused before connecting: a flight without its log is not flown
+        log = FlightLog.create(cfg.log.directory, config_as_dict(cfg), min_free_mb=cfg.log.min_free_mb,
+                               flush_interval=cfg.log.flush_interval, stderr=stderr)
+    except FlightLogError as e:
+        raise StartRefused(f"cannot start the flight log: {e}") from None
     print(f"companion: logging to {log.folder}", file=stderr, flush=True)
     notifier = Notifier()
     app: FlightApp | None = None
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
                                    else log.event(f"link {kind} {detail}"))
+    truth = None
     try:
+        from companion.px4sitl.truth import attach_truth
+
+        truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
         camera, perception, in_thread = build_camera(cfg, link, log)
+        if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
+            from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
+
+            camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
+                                     link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
                         status_line=status_line, perception_in_thread=in_thread)
         loop = asyncio.get_running_loop()
@@ -166,12 +309,15 @@ async def fly(
                 side.cancel()
                 await asyncio.gather(side, return_exceptions=True)
         summary = app.summary()
-    except Exception as e:  # (set-up failed before the state machine ran)
-        reason = Reason.CAMERA_FAILED if app is None else Reason.EXCEPTION
-        summary = {"outcome": "ABORT_NOT_ARMED", "reason": reason.name, "exit_code": int(reason),
-                   "detail": f"{type(e).__name__}: {e}"}
-        log.state("INIT", "ABORT_NOT_ARMED", summary["detail"])
-        print(f"companion: set-up failed: {summary['detail']}", file=stderr, flush=True)
+    except Exception as e:
+        if app is None:  # set-up failed before the state machine ran: nothing connected, nothing armed
+            reason = Reason.CAMERA_FAILED
+            summary = {"outcome": "ABORT_NOT_ARMED", "reason": reason.name, "exit_code": int(reason),
+                       "detail": f"{type(e).__name__}: {e}"}
+            log.state("INIT", "ABORT_NOT_ARMED", summary["detail"])
+            print(f"companion: set-up failed: {summary['detail']}", file=stderr, flush=True)
+        else:
+            reason, summary = await _escaped(app, link, e, stderr)
     finally:
         if handle_signals:
             loop = asyncio.get_running_loop()
@@ -179,6 +325,8 @@ async def fly(
                 loop.remove_signal_handler(sig)
         with contextlib.suppress(Exception):
             await asyncio.wait_for(link.close(), 10.0)
+        if truth is not None:
+            truth.close()
         notifier.close()
     log.close(summary)
     if plot and cfg.log.plot:
@@ -189,6 +337,31 @@ async def fly(
         except Exception as e:  # (a plot must never change the flight's outcome)
             print(f"companion: plot failed: {type(e).__name__}: {e}", file=stderr)
     return reason, log.folder, summary
+
+
+async def _escaped(app: FlightApp, link: Any, err: Exception, stderr: Any) -> tuple[Reason, dict[str, Any]]:
+    """An exception got out of the state machine (a bug): record only what is true of the vehicle.
+
+    If the machine already reached its safe state, that stands. Otherwise streaming is stopped
+    (closing the link ends MAVSDK's resending, so PX4's offboard-loss failsafe acts once we
+    commanded it) and the state named is the one that is true then: not armed on the ground,
+    PX4's own failsafe in the air.
+    """
+    from companion.app.flight import GROUND_STATES
+    from companion.app.states import Reason, State
+
+    detail = f"{type(err).__name__}: {err}"
+    print(f"companion: flight logic failed: {detail}", file=stderr, flush=True)
+    if not app.sm.done:
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(link.close(), 10.0)
+        dst = State.ABORT_NOT_ARMED if app.sm.state in GROUND_STATES else State.SAFE_FAILSAFE_LINK
+        with contextlib.suppress(Exception):
+            app.sm.go(dst, f"{detail}; streaming stopped", Reason.EXCEPTION)
+    summary = app.summary()
+    summary.setdefault("error", detail)
+    reason = app.sm.outcome if app.sm.outcome is not None else Reason.EXCEPTION
+    return reason, summary
 
 
 # ---------------------------------------------------------------------------- simulated PX4 process
@@ -290,7 +463,6 @@ def detector_available(cfg: Config) -> str | None:
 def run_sim(args: argparse.Namespace) -> int:
     """``companion sim``: simulated PX4 (own process) + synthetic camera + the app, in real time."""
     from companion.config import load_config
-    from companion.flightlog import gate_crossings, read_flight
 
     ov = [*getattr(args, "overrides", []), "app.camera=synthetic"]
     if getattr(args, "motion", None):
@@ -306,8 +478,20 @@ def run_sim(args: argparse.Namespace) -> int:
     with SimPX4Process(args.config, [o for o in ov if o.startswith(("sim.", "airframe."))]) as px4:
         print(f"companion sim: simulated PX4 on 127.0.0.1:{px4.port} (pid {px4.proc.pid})", file=sys.stderr)
         cfg = load_config(args.config, [*ov, f"link.url={px4.url}"])
-        reason, folder, summary = asyncio.run(fly(cfg, status_line=not getattr(args, "no_status", False),
-                                                  plot=not getattr(args, "no_plot", False)))
+        try:
+            reason, folder, summary = run_flight_process(fly(cfg, status_line=not getattr(args, "no_status", False),
+                                                             plot=not getattr(args, "no_plot", False)))
+        except StartRefused as e:
+            print(f"companion sim: {e}", file=sys.stderr)
+            return 2
+    print_flight_report(folder, summary)
+    return exit_when_done(int(reason))
+
+
+def print_flight_report(folder: Path, summary: dict[str, Any]) -> None:
+    """The end of ``companion sim``: outcome, each gate crossing (from the logged truth), latency, log folder."""
+    from companion.flightlog import gate_crossings, read_flight
+
     f = read_flight(folder)
     cross = gate_crossings(f)
     lat = summary.get("frame_to_setpoint_ms", {})
@@ -319,7 +503,6 @@ def run_sim(args: argparse.Namespace) -> int:
         print(f"frame -> setpoint latency: p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms; "
               f"app CPU {summary.get('cpu_percent', 0):.0f} %")
     print(f"log: {folder}" + (f"  plot: {folder / 'plot.png'}" if (folder / "plot.png").exists() else ""))
-    return int(reason)
 
 
 def add_sim_arguments(p: argparse.ArgumentParser) -> None:

@@ -6,12 +6,16 @@ camera model (intrinsics, distortion, mount). Two box models:
 * ``clip=False`` (default, the paper's V-A measurement: "project the gate's ground truth
   position into the camera frame"): the box is centred on the projected gate centre, its size
   is the rim's pixel extent;
-* ``clip=True`` (detector-like): the box is the rim's extent clipped to the image, so a ring
-  cut by the image border gives a biased centre, as a real detector's box would.
+* ``clip=True`` (detector-like): the box is the extent of the part of the rim that is in the
+  image, so a ring cut by the image border gives a biased centre, as a real detector's box
+  would; a ring whose centre is outside the image but whose rim reaches into it still gives a
+  (partial) box; near the pass the arcs in view fill the image, and a ring all around the image
+  (the camera looks through it) gives none.
 
 The rim's extent is exact (closed form for the projected circle) when the whole ring is in
 front of an undistorted camera, else from 32 rim samples (cv2.projectPoints with distortion).
-No box when the gate centre is behind the camera or outside the image (the FOV check), when
+No box when the gate centre is behind the camera or outside the image (the FOV check; with
+``clip``: when no part of the rim is in the image), when
 the box is smaller than ``min_box`` pixels, or when the frame is dropped. Pixel noise is
 added to the box centre and size. Latency is the runner's job (it delivers the box of a
 frame captured at t at t + delay).
@@ -34,6 +38,8 @@ _N_RIM = 32  # rim samples; the box of a 32-gon is within 0.5 % of the circle's
 
 _ANG = np.linspace(0.0, 2 * math.pi, _N_RIM, endpoint=False)
 _COS_SIN = np.column_stack((np.cos(_ANG), np.sin(_ANG)))
+_ANG_FINE = np.linspace(0.0, 2 * math.pi, 4 * _N_RIM, endpoint=False)
+_COS_SIN_FINE = np.column_stack((np.cos(_ANG_FINE), np.sin(_ANG_FINE)))  # the visible arc of a cut ring
 
 
 @lru_cache(maxsize=64)
@@ -128,7 +134,7 @@ class GeometricCamera:
             cz, az, bz = float(c[2]), float(a[2]), float(b[2])
             cu = fx * float(c[0]) / cz + cx
             cv = fy * float(c[1]) / cz + cy
-            if not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
+            if not self.clip and not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
                 return None  # the FOV check: the gate centre must be in the image
             u0, u1 = _ratio_extremes(fx * float(c[0]) + cx * cz, fx * float(a[0]) + cx * az,
                                      fx * float(b[0]) + cx * bz, cz, az, bz)
@@ -141,7 +147,7 @@ class GeometricCamera:
                 return None
             px = self.project(np.vstack((c[None, :], front)))
             cu, cv = float(px[0, 0]), float(px[0, 1])
-            if not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
+            if not self.clip and not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
                 return None
             lo, hi = px[1:].min(axis=0), px[1:].max(axis=0)
             u0, v0, u1, v1 = float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
@@ -150,11 +156,44 @@ class GeometricCamera:
             if u1 - u0 < self.min_box or v1 - v0 < self.min_box:
                 return None
             return BoundingBox(cu, cv, u1 - u0, v1 - v0, 1.0, t)
-        x0, y0 = max(0.0, u0), max(0.0, v0)
-        x1, y1 = min(float(m.width), u1), min(float(m.height), v1)
-        if x1 - x0 < self.min_box or y1 - y0 < self.min_box:
+        if not (u0 >= 0.0 and u1 <= m.width and v0 >= 0.0 and v1 <= m.height):
+            # Cut by the image border: the extent of the part of the ring that is in the image (a box
+            # clipped to the image would also keep the height of the arcs that are outside it).
+            vis = self._visible_extent(c, ab)
+            if vis is None:
+                return None
+            u0, v0, u1, v1 = vis
+        if u1 - u0 < self.min_box or v1 - v0 < self.min_box:
             return None
-        return BoundingBox.from_xyxy(x0, y0, x1, y1, 1.0, t)
+        return BoundingBox.from_xyxy(u0, v0, u1, v1, 1.0, t)
+
+    def _visible_extent(self, c: np.ndarray, ab: np.ndarray) -> tuple[float, float, float, float] | None:
+        """Pixel extent of the rim inside the image: each chord between rim samples (both in front of the
+        camera) clipped to the image rectangle (Liang-Barsky), then the extent of what is left."""
+        rim = c + _COS_SIN_FINE @ ab
+        front = rim[:, 2] > 1e-3
+        px = np.full((rim.shape[0], 2), np.nan)
+        if front.any():
+            px[front] = self.project(rim[front])
+        p0, p1 = px, np.roll(px, -1, axis=0)
+        ok = np.isfinite(p0).all(axis=1) & np.isfinite(p1).all(axis=1)
+        p0, p1 = p0[ok], p1[ok]
+        if p0.shape[0] == 0:
+            return None
+        d = p1 - p0
+        w, h = float(self.model.width), float(self.model.height)
+        pp = np.stack((-d[:, 0], d[:, 0], -d[:, 1], d[:, 1]), axis=1)
+        qq = np.stack((p0[:, 0], w - p0[:, 0], p0[:, 1], h - p0[:, 1]), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = qq / pp
+        t0 = np.max(np.where(pp < 0, r, 0.0), axis=1)
+        t1 = np.min(np.where(pp > 0, r, 1.0), axis=1)
+        keep = (t0 <= t1) & ~np.any((pp == 0) & (qq < 0), axis=1)
+        if not keep.any():
+            return None
+        ends = np.vstack((p0[keep] + t0[keep, None] * d[keep], p0[keep] + t1[keep, None] * d[keep]))
+        lo, hi = ends.min(axis=0), ends.max(axis=0)
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
     def capture(
         self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray, centre: np.ndarray, normal: np.ndarray,

@@ -44,6 +44,9 @@ class SimQuadConfig(Section):
     drag_lin: Number = Field(0.05, ge=0.0, le=10.0, description="linear drag, N per m/s of airspeed")
     drag_quad: Number = Field(0.011, ge=0.0, le=10.0, description="quadratic drag, N per (m/s)^2")
     max_rate: DegPerSecond = Field(220.0, gt=1.0, le=2000.0, description="body-rate limit, deg/s")
+    cmd_delay: Seconds = Field(
+        0.0, ge=0.0, le=1.0, description="pure delay of every setpoint before the vehicle's loops act on it, s"
+    )
     max_touchdown_speed: MetersPerSecond = Field(
         1.0, gt=0.0, le=20.0, description="descending faster than this at z = 0 is a ground contact"
     )
@@ -126,6 +129,10 @@ class BaselineConfig(Section):
 class SimConfig(Section):
     seed: int = Field(0, ge=0)
     rate: Hertz = Field(200.0, ge=200.0, le=5000.0, description="dynamics integration rate, Hz")
+    imu_to_controller: bool = Field(
+        True, description="give the simulated accelerometer to the controller (its closing-speed estimate); "
+        "false: box and attitude only, like an app without IMU telemetry"
+    )
     quad: SimQuadConfig = SimQuadConfig()
     wind: WindConfig = WindConfig()
     sensors: SensorsConfig = SensorsConfig()

@@ -4,7 +4,11 @@ World ENU, body FLU (z = thrust axis), quaternions xyzw (body -> world), as in c
 Input: commanded attitude + normalised collective thrust (what PX4's offboard attitude setpoint
 gives). Inside: Brescianini's attitude law ``omega_c = 2/tau sgn(q_e0) q_e(1:3)``, a first-order
 body-rate response ``tau_omega`` (stands in for PX4's rate PID), a first-order thrust lag, thrust
-limits, linear + quadratic drag on the airspeed, wind, and a flat ground at z = 0.
+limits, linear + quadratic drag on the airspeed, wind, and a flat ground at z = 0. An optional pure
+delay ``cmd_delay`` between a setpoint and the loops that follow it stands for the transport and
+scheduling latency of a real autopilot (PX4 SIH's roll answers its setpoint ~220 ms late, more than a
+first-order loop can produce at the ~2 Hz where a limit cycle lives). The vehicle profiles in
+config/vehicles/ set these per airframe.
 
 The integrator is on the simulator's hot path (>= 200 Hz, >= 200x real time), so it works on plain
 Python floats; numpy/scipy only appear at the API boundary.
@@ -13,6 +17,7 @@ Python floats; numpy/scipy only appear at the API boundary.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -45,6 +50,7 @@ class QuadParams:
     max_rate: float = math.radians(220.0)  # rad/s, per-axis body-rate limit (PX4 MC_*RATE_MAX-like)
     max_touchdown_speed: float = 1.0  # m/s; descending faster at z = 0 is a ground contact
     max_step: float = 1.0 / 200.0  # s; step() subdivides longer dt so integration stays >= 200 Hz
+    cmd_delay: float = 0.0  # s; pure delay of every setpoint (attitude and thrust) before the loops act on it
 
     @property
     def f_max(self) -> float:
@@ -67,6 +73,7 @@ class QuadParams:
             max_rate=math.radians(q.max_rate),
             max_touchdown_speed=q.max_touchdown_speed,
             max_step=1.0 / cfg.sim.rate,
+            cmd_delay=q.cmd_delay,
         )
 
 
@@ -130,6 +137,8 @@ class Quadrotor:
         self._coeffs: dict[float, tuple[int, float, float, float]] = {}  # per dt: substeps and gains
         self._k_lin = params.drag_lin / params.mass  # mass-normalised drag coefficients
         self._k_quad = params.drag_quad / params.mass
+        self._queue: deque[tuple[float, tuple, float]] = deque()  # (time it takes effect, q_cmd, f_cmd)
+        self._active: tuple[tuple, float] | None = None  # the delayed command in effect
         self.state = state if state is not None else QuadState()
 
     @property
@@ -158,6 +167,8 @@ class Quadrotor:
         self._on_ground = bool(s.on_ground)
         self._contact = bool(s.ground_contact)
         self._a = (0.0, 0.0, 0.0)  # last true acceleration (world), for the accelerometer
+        self._queue.clear()  # a new state starts with no setpoints in flight
+        self._active = None
 
     def _publish(self) -> QuadState:
         self._state = QuadState(
@@ -196,8 +207,21 @@ class Quadrotor:
         n, h, a_w, a_f = coeffs
         k_att = 2.0 / p.tau_att
         wmax = p.max_rate
+        if p.cmd_delay <= 0.0:
+            for _ in range(n):
+                self._substep(h, qc, f_cmd, wind, a_w, a_f, k_att, wmax)
+            return self._publish()
+        # Delayed: the command reaches the loops cmd_delay after it was given; until the first one arrives the
+        # vehicle holds the first command it got (as an autopilot holds its last setpoint).
+        queue = self._queue
+        queue.append((self._t + p.cmd_delay - 1e-9, qc, f_cmd))
+        if self._active is None:
+            self._active = (qc, f_cmd)
         for _ in range(n):
-            self._substep(h, qc, f_cmd, wind, a_w, a_f, k_att, wmax)
+            while queue and queue[0][0] <= self._t:
+                _, q_a, f_a = queue.popleft()
+                self._active = (q_a, f_a)
+            self._substep(h, self._active[0], self._active[1], wind, a_w, a_f, k_att, wmax)
         return self._publish()
 
     def _substep(self, h, qc, f_cmd, wind, a_w, a_f, k_att, wmax) -> None:

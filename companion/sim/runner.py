@@ -25,8 +25,11 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from companion.app.states import Reason
 from companion.configbase import deep_merge
-from companion.frames import R_enu_flu_from_ned_frd
+from companion.engagement import Engagement, Phase
+from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
+from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.sim.camera import GeometricCamera
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
@@ -42,6 +45,8 @@ ControllerKind = Literal["pn", "pn_true_vrel", "baseline"]
 CONTROLLERS: tuple[ControllerKind, ...] = ("pn", "pn_true_vrel", "baseline")
 CameraKind = Literal["geometric", "rendered"]
 CAMERAS: tuple[CameraKind, ...] = ("geometric", "rendered")
+ProtocolKind = Literal["engagement", "controller"]
+PROTOCOLS: tuple[ProtocolKind, ...] = ("engagement", "controller")
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,9 @@ class RunSpec:
     # geometric: projected box (fast, the paper's V-A setup); rendered: drawn frames through the real
     # detector/tracker (perception/simcamera.py), ~100x slower.
     camera: CameraKind = "geometric"
+    # engagement: the engagement core in the loop (acquire, close, pass, recover, aborts) on detector-like
+    # boxes; controller: the paper's protocol (controller until the gate plane, box centred on the gate).
+    protocol: ProtocolKind = "engagement"
 
 
 @dataclass
@@ -90,6 +98,7 @@ class RunResult:
     trajectory: Trajectory | None = None
     max_tilt_deg: float = math.nan  # largest commanded tilt over the engagement (companion.metrics)
     roll_osc: Oscillation = NO_OSCILLATION  # roll-setpoint oscillation over the engagement
+    engagement: dict[str, Any] | None = None  # engagement protocol: how it ended, the pass's status
 
     def as_dict(self, radii: list[float]) -> dict[str, Any]:
         d = {**asdict(self.spec), "distance_m": self.distance, "angle_deg": self.angle,
@@ -99,6 +108,8 @@ class RunResult:
         # None, not NaN, for "too few setpoints": valid JSON, and equal results compare equal.
         metrics = {"max_tilt_deg": self.max_tilt_deg, **self.roll_osc.as_dict()}
         d.update({k: (v if math.isfinite(v) else None) for k, v in metrics.items()})
+        if self.engagement is not None:
+            d.update({f"engagement_{k}": v for k, v in self.engagement.items()})
         return d
 
 
@@ -109,25 +120,102 @@ def with_overrides(cfg: Config, overrides: dict[str, Any]) -> Config:
     return Config.model_validate(deep_merge(cfg.model_dump(), overrides))
 
 
-def _make_controller(cfg: Config, kind: ControllerKind, params: QuadParams):
-    if kind == "baseline":
-        from companion.baseline import BaselinePN
+_FLU_TO_FRD = np.array([1.0, -1.0, -1.0])
 
-        return BaselinePN.from_config(cfg)
-    from companion.controller import PNController
 
-    return PNController.from_config(cfg)
+class _Steering:
+    """The controller as the engagement steps it: ``step(t, box, q)``, ``reset()``.
+
+    The paper's ablations that know ground truth (the "perfect v_rel knowledge" row, the velocity-based
+    baseline) get it here, set by the runner before each step; the engagement itself never sees it.
+    """
+
+    def __init__(self, cfg: Config, kind: ControllerKind) -> None:
+        self.kind = kind
+        if kind == "baseline":
+            from companion.baseline import BaselinePN
+
+            self.ctrl: Any = BaselinePN.from_config(cfg)
+        else:
+            from companion.controller import PNController
+
+            if kind == "pn_true_vrel":  # the ablation sets v_rel_bar itself: no estimate on top of it
+                cfg = with_overrides(cfg, {"guidance": {"closing_speed": "fixed"}})
+            self.ctrl = PNController.from_config(cfg)
+        self._cfg = cfg
+        self.truth: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # p, v, gate, gate v
+        self.imu: tuple[np.ndarray | None, float] | None = None  # (accelerometer FRD at capture, now), set per frame
+
+    def reset(self) -> None:
+        if self.kind == "baseline":
+            from companion.baseline import BaselinePN
+
+            self.ctrl = BaselinePN.from_config(self._cfg)
+        else:
+            self.ctrl.reset()
+
+    def step(self, t: float, box: Any, q: np.ndarray) -> Any:
+        if self.kind == "pn":
+            acc, now = self.imu if self.imu is not None else (None, None)
+            return self.ctrl.step(t, box, q, acc, now)
+        assert self.truth is not None
+        p, v, g, gv = self.truth
+        if self.kind == "pn_true_vrel":
+            # Ablation only: the paper's "perfect knowledge" of the closing speed.
+            r = g - p
+            closing = -float(r @ (gv - v)) / float(np.linalg.norm(r))
+            gp = replace(self.ctrl.p.guidance, v_rel_bar=max(closing, 0.1))
+            self.ctrl.p = replace(self.ctrl.p, guidance=gp)
+            return self.ctrl.step(t, box, q)
+        # baseline: velocities known (GPS), as Bhattacharya et al. assume
+        out = self.ctrl.step(t, box, q, v.copy(), gv - v)
+        los = self.ctrl._l_prev
+        return _BaselineOut(out.t, out.setpoint, out.mode, None if los is None else P_NED_ENU @ los)
+
+
+@dataclass(frozen=True)
+class _BaselineOut:
+    t: float
+    setpoint: Any
+    mode: str
+    los_ned: np.ndarray | None
+    demand_scale: float = math.nan
+    lambda_dot: float = math.nan
+
+
+# Engagement ends -> the run's end reason (when the gate plane was not crossed).
+_END_REASONS = {Reason.OK: "handback", Reason.NO_TARGET: "no_target", Reason.TARGET_LOST: "target_lost",
+                Reason.MAX_ENGAGEMENT: "max_engagement", Reason.ALTITUDE_FLOOR: "altitude_floor"}
+POST_CROSSING_S = 1.5  # s flown after the crossing at most while the engagement is still before RECOVER
+
+
+def _hover_estimator(cfg: Config, spec: RunSpec, ctrl: Any, ss: np.random.SeedSequence) -> tuple | None:
+    """(estimator, its own IMU) when hover.estimate is on; its own noise stream leaves the others' unchanged."""
+    if not cfg.hover.estimate or spec.controller == "baseline":
+        return None
+    return (HoverThrustEstimator(ctrl.p.hover_thrust, cfg.hover),
+            Sensors(cfg.sim.sensors, np.random.default_rng(ss.spawn(1)[0])))
 
 
 def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
-    """Fly one run to its end (crossing, fov_lost, ground, timeout); deterministic for spec.seed."""
+    """Fly one run to its end; deterministic for spec.seed.
+
+    ``engagement`` protocol: the engagement core decides (acquire, engage, close, pass, recover, aborts) on
+    detector-like boxes (clipped to the image); the run ends when the engagement ends, when it is in RECOVER
+    after the gate-plane crossing, or on the simulator's own limits (ground, timeout). ``controller``
+    protocol (the paper's V-A): the controller alone, boxes centred on the gate, until the crossing,
+    fov_lost, ground or timeout. Either way the gate-plane crossing from ground truth scores the run.
+    """
     if spec.motion not in MOTIONS:
         raise ValueError(f"run: unknown gate motion {spec.motion!r} (use one of: {', '.join(MOTIONS)})")
     if spec.controller not in CONTROLLERS:
         raise ValueError(f"run: unknown controller {spec.controller!r} (use one of: {', '.join(CONTROLLERS)})")
     if spec.camera not in CAMERAS:
         raise ValueError(f"run: unknown camera {spec.camera!r} (use one of: {', '.join(CAMERAS)})")
+    if spec.protocol not in PROTOCOLS:
+        raise ValueError(f"run: unknown protocol {spec.protocol!r} (use one of: {', '.join(PROTOCOLS)})")
     sim = cfg.sim
+    engaged = spec.protocol == "engagement"
     # Independent streams, so e.g. turning pixel noise on does not change the initial condition.
     ss = np.random.SeedSequence([sim.seed, spec.seed])
     rng_scn, rng_cam, rng_sens, rng_wind = (np.random.default_rng(s) for s in ss.spawn(4))
@@ -142,11 +230,14 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         from perception.simcamera import geometric_camera_substitute
 
         make_camera = geometric_camera_substitute(cfg)
+    # The engagement protocol sees a detector-like box: the ring's extent clipped to the image.
     camera = make_camera(CameraModel.from_config(cfg.camera), sim.camera.pixel_noise,
-                         sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box)
+                         sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box or engaged)
     sensors = Sensors(sim.sensors, rng_sens)
     wind = Wind(sim.wind, rng_wind)
-    ctrl = _make_controller(cfg, spec.controller, params)
+    steer = _Steering(cfg, spec.controller)
+    eng = Engagement.from_config(cfg, steer) if engaged else None
+    hover = _hover_estimator(cfg, spec, steer.ctrl, ss)
     scorer = PlaneCrossingScorer(gate.normal)
 
     dt = 1.0 / cfg.camera.rate
@@ -162,8 +253,10 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     frames = frames_with_box = 0
     top_speed = 0.0
     outcome: RunOutcome | None = None
+    crossing: RunOutcome | None = None
     mode = "init"
     last_out = None
+    end: str | None = None  # the engagement's end (phase and reason), if it ended
     roll_cmd = pitch_cmd = math.nan
     sp_t: list[float] = []  # commanded attitude per control step, for the per-run metrics
     sp_roll: list[float] = []
@@ -175,9 +268,11 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         g = gate.position(t)
         speed = float(np.linalg.norm(s.v))
         top_speed = max(top_speed, speed)
-        crossed = scorer.update(t, s.p, g)
-        if crossed is not None:
-            outcome = crossed
+        if crossing is None:
+            crossing = scorer.update(t, s.p, g)
+            t_cross = t
+        if crossing is not None and (eng is None or eng.phase in (Phase.RECOVER,) or eng.phase.done
+                                     or t - t_cross > POST_CROSSING_S):
             break
         if s.ground_contact or (s.on_ground and k > 0):
             outcome = RunOutcome(False, None, None, "ground")
@@ -191,38 +286,47 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         if box is not None:
             frames_with_box += 1
             last_seen = t
-        elif t - last_seen > fov_timeout:
+        elif eng is None and t - last_seen > fov_timeout:
             outcome = RunOutcome(False, None, None, "fov_lost")
             break
         q_est = sensors.attitude_wxyz_ned_frd(s.q)
         # The controller's contract: the box of the frame captured at t_cap with the attitude at t_cap
         # (the app matches telemetry to the frame time). attitude_at_capture=False instead pairs the
         # late box with the attitude at arrival, which is what a naive pipeline does.
-        pending.append((t + delay, t, box, q_est))
+        imu = sensors.imu(quad.specific_force_body(), s.omega)  # one draw per frame, recorded or not
+        acc_frd = imu.accel * _FLU_TO_FRD  # the accelerometer as PX4 reports it (body FRD)
+        pending.append((t + delay, t, box, q_est, acc_frd))
+        steer.truth = (s.p, s.v, g, gate.velocity(t))
         while pending and pending[0][0] <= t + 1e-9:
-            _, t_cap, b, q_cap = pending.popleft()
+            _, t_cap, b, q_cap, acc_cap = pending.popleft()
+            # The controller may use the accelerometer at the frame's capture time and the frame's age.
+            steer.imu = (acc_cap if cfg.sim.imu_to_controller else None, t)
             if sim.camera.attitude_at_capture:
                 q_est = q_cap
-            if spec.controller == "pn":
-                out = ctrl.step(t_cap, b, q_est)
-            elif spec.controller == "pn_true_vrel":
-                # Ablation only: the paper's "perfect knowledge" of the closing speed.
-                r = g - s.p
-                closing = -float(r @ (gate.velocity(t) - s.v)) / float(np.linalg.norm(r))
-                gp = replace(ctrl.p.guidance, v_rel_bar=max(closing, 0.1))
-                ctrl.p = replace(ctrl.p, guidance=gp)
-                out = ctrl.step(t_cap, b, q_est)
-            else:  # baseline: velocities known (GPS), as Bhattacharya et al. assume
-                out = ctrl.step(t_cap, b, q_est, s.v.copy(), gate.velocity(t) - s.v)
-            sp = out.setpoint
+            if eng is None:
+                out = steer.step(t_cap, b, q_est)
+                sp, mode, last_out = out.setpoint, out.mode, out
+            else:
+                # Barometric altitude above the ground with the run's baro offset (its white noise, 0.1 m,
+                # is irrelevant to the floor and would shift the attitude-noise stream).
+                d = eng.step(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias)
+                sp, mode = d.setpoint, d.phase.value
+                last_out = d.control if d.control is not None else last_out
+                if d.phase.done:
+                    end = f"{d.phase.value} {d.reason.name if d.reason else ''}".strip()
+                    if crossing is None:
+                        outcome = RunOutcome(False, None, None, _END_REASONS.get(d.reason, "handback"))
+                    break
+            if sp is None:
+                continue  # ACQUIRE: PX4 holds (here: the cruise trim)
             q_cmd = matrix_to_quat(R_enu_flu_from_ned_frd(sp.R_ned_frd))
             thrust_cmd = sp.thrust
             sp_t.append(t)
             sp_roll.append(sp.roll_deg)
             sp_pitch.append(sp.pitch_deg)
             roll_cmd, pitch_cmd = sp.roll_deg, sp.pitch_deg
-            mode = out.mode
-            last_out = out
+        if outcome is not None:
+            break
         if traj is not None:
             traj.t.append(t)
             traj.p.append(s.p.copy())
@@ -236,14 +340,27 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
             # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
-            traj.accel.append(sensors.imu(quad.specific_force_body(), s.omega).accel)
+            traj.accel.append(imu.accel)
             traj.baro.append(sensors.baro_altitude(float(s.p[2])))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+        if hover is not None:  # in-flight hover-thrust estimate (companion/hover.py), hover.estimate=true
+            est, imu = hover
+            acc = imu.imu(quad.specific_force_body(), quad.state.omega).accel  # FLU: z is the thrust axis
+            if est.update(t + dt, thrust_cmd, float(acc[2])) is not None:
+                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight)
         k += 1
+    if crossing is not None:
+        outcome = crossing  # ground truth scores the run, whatever the engagement did after
+    assert outcome is not None
     outcome.top_speed = top_speed
+    info = None
+    if eng is not None:
+        first = eng.passes[0] if eng.passes else None
+        info = {"end": end or eng.phase.value, "pass_status": first.status if first else None,
+                "t_close_s": first.t_close if first else None}
     return RunResult(spec, outcome, scn.distance, scn.angle, scn.altitude, k * dt, frames, frames_with_box, traj,
                      max_tilt_deg(np.array(sp_roll), np.array(sp_pitch)),
-                     oscillation(np.array(sp_t), np.array(sp_roll)))
+                     oscillation(np.array(sp_t), np.array(sp_roll)), info)
 
 
 def bench_sim(seconds: float = 60.0, cfg: Config | None = None) -> dict[str, float]:

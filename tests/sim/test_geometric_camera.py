@@ -141,3 +141,58 @@ def test_rim_points_lie_on_the_circle(normal):
     n = np.array(normal) / np.linalg.norm(normal)
     assert np.allclose(np.linalg.norm(pts - c, axis=1), 1.5)
     assert np.allclose((pts - c) @ n, 0.0)
+
+
+def _dense_visible_extent(R: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: float):
+    """Independent: 20000 rim points through cv2.projectPoints, the extent of those in the image."""
+    nrm = normal / np.linalg.norm(normal)
+    u = np.cross(nrm, [0, 0, 1.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(nrm, u)
+    ang = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
+    rim = centre + radius * (np.outer(np.cos(ang), u) + np.outer(np.sin(ang), w))
+    R_cam_world = (R @ np.diag([1.0, -1.0, -1.0]) @ MODEL.R_body_cam).T
+    pc = (rim - P) @ R_cam_world.T
+    pc = pc[pc[:, 2] > 1e-3]
+    if len(pc) == 0:
+        return None
+    px, _ = cv2.projectPoints(pc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), MODEL.K, np.zeros(5))
+    px = px.reshape(-1, 2)
+    px = px[(px[:, 0] >= 0) & (px[:, 0] <= 640) & (px[:, 1] >= 0) & (px[:, 1] <= 480)]
+    if len(px) == 0:
+        return None
+    return px[:, 0].min(), px[:, 1].min(), px[:, 0].max(), px[:, 1].max()
+
+
+def test_detector_like_box_is_the_visible_part_of_a_partial_ring():
+    """clip=True: the box of a ring cut by the border (even with its centre out of view) is the extent of
+    the arcs inside the image, not the whole ring's extent clipped."""
+    rng = np.random.default_rng(3)
+    det, paper = cam(clip=True), cam()
+    n_partial = n_centre_out = 0
+    for _ in range(300):
+        R = Rotation.from_euler("zyx", rng.uniform(-20, 20, 3), degrees=True).as_matrix()
+        centre = P + np.array([rng.uniform(1.5, 12), rng.uniform(-6, 6), rng.uniform(-4, 4)])
+        normal = np.array([-1.0, rng.uniform(-0.6, 0.6), rng.uniform(-0.3, 0.3)])
+        expect = _dense_visible_extent(R, centre, normal, 1.0)
+        box = det.box_exact(P, R, centre, normal, 1.0)
+        if expect is None or expect[2] - expect[0] < 2.0 or expect[3] - expect[1] < 2.0:
+            assert box is None or min(box.w, box.h) < 3.0
+            continue
+        assert box is not None
+        assert np.abs(np.subtract(box.xyxy, expect)).max() < 0.5
+        whole = not (expect[0] > 0.01 and expect[2] < 639.99 and expect[1] > 0.01 and expect[3] < 479.99)
+        n_partial += whole
+        n_centre_out += paper.box_exact(P, R, centre, normal, 1.0) is None
+    assert n_partial >= 50 and n_centre_out >= 20  # both cases were exercised
+
+
+def test_looking_through_the_ring_sees_no_ring_and_close_arcs_fill_the_image():
+    # 0.5 m before a 2 m ring, centred: the whole ring is outside the 67 deg field of view.
+    assert cam(clip=True).box_exact(P, LEVEL, P + np.array([0.5, 0, 0]), FACING, 2.0) is None
+    # 2 m before a 1 m ring centred 0.6 m up: its top arc is above the image (cut at v = 0), its lowest point
+    # 0.4 m below the camera, its sides at +-1 m (the widest points, at the centre's height, are in view).
+    box = cam(clip=True).box_exact(P, LEVEL, P + np.array([2.0, 0.0, 0.6]), FACING, 1.0)
+    assert box is not None and box.xyxy[1] == pytest.approx(0.0, abs=1e-9)
+    assert box.xyxy[3] == pytest.approx(240.0 + FX * 0.4 / 2.0, rel=1e-9)
+    assert box.w == pytest.approx(2 * FX * 1.0 / 2.0, rel=1e-3)

@@ -52,21 +52,56 @@ def test_stationary_gate_noise_free_is_flown_through_the_centre():
 def test_failure_reasons():
     t = run_once(with_overrides(CFG, {"sim": {"scenario": {"timeout": 0.5}}}), RunSpec("stationary", 0))
     assert t.outcome.reason == "timeout" and not t.outcome.crossed and t.as_dict(RADII)["failure"]["2.0"] == "timeout"
-    f = run_once(with_overrides(CFG, {"sim": {"camera": {"drop_prob": 1.0}}}), RunSpec("stationary", 0))
+    f = run_once(with_overrides(CFG, {"sim": {"camera": {"drop_prob": 1.0}}}),
+                 RunSpec("stationary", 0, protocol="controller"))
     assert f.outcome.reason == "fov_lost" and 1.0 < f.sim_time < 1.2
     # Model error: the true vehicle needs 0.9 to hover, the controller believes 0.5: it sinks from 1 m.
     low = {"sim": {"scenario": {"altitude_min": 1.0, "altitude_max": 1.0, "gate_height_offset": 0.0},
                    "quad": {"hover_thrust": 0.9}}}
-    g = run_once(with_overrides(CFG, low), RunSpec("stationary", 0))
+    g = run_once(with_overrides(CFG, low), RunSpec("stationary", 0, protocol="controller"))
     assert g.outcome.reason == "ground"
 
 
+def test_engagement_ends_are_the_runs_failure_reasons():
+    # No box ever: the engagement never leaves ACQUIRE and lands at acquire_timeout (no target).
+    f = run_once(with_overrides(CFG, {"sim": {"camera": {"drop_prob": 1.0}}, "app": {"acquire_timeout": 0.5}}),
+                 RunSpec("stationary", 0))
+    assert f.outcome.reason == "no_target" and not f.outcome.crossed and 0.5 < f.sim_time < 0.6
+    assert f.engagement["end"] == "LAND NO_TARGET" and f.max_tilt_deg != f.max_tilt_deg  # no setpoint: NaN
+    # Below the altitude floor once engaged: an abort, not a flight into the ground.
+    low = {"sim": {"scenario": {"altitude_min": 1.0, "altitude_max": 1.0, "gate_height_offset": 0.0}}}
+    g = run_once(with_overrides(CFG, low), RunSpec("stationary", 0))
+    assert g.outcome.reason == "altitude_floor" and g.engagement["end"] == "ABORT ALTITUDE_FLOOR"
+    # Boxes stop once engaged: target lost after safety.target_lost_timeout.
+    # A gate too fast to catch leaves the view once engaged: target lost (safety.target_lost_timeout).
+    h = run_once(with_overrides(CFG, {"sim": {"gates": {"linear_fast_speed": 40.0}}}), RunSpec("linear_fast", 0))
+    assert h.outcome.reason == "target_lost" and not h.outcome.crossed and h.engagement["end"] == "ABORT TARGET_LOST"
+
+
+def test_engagement_protocol_passes_straight_and_confirms_it():
+    r = run_once(CFG, RunSpec("stationary", 1), record=True)
+    assert r.outcome.crossed and r.outcome.success(1.0)
+    tr = r.trajectory
+    modes = [m for m in dict.fromkeys(tr.mode)]
+    assert modes == ["init", "ACQUIRE", "ENGAGE", "PASS", "RECOVER"][1 - ("init" in modes) * 1:]
+    assert r.engagement["pass_status"] == "confirmed" and r.engagement["t_close_s"] < r.outcome.t_gate
+    # In PASS the command is constant (no held bank that PN was flying): the straight pass.
+    i = [k for k, m in enumerate(tr.mode) if m == "PASS"]
+    assert len({(tr.roll_sp[k], tr.pitch_sp[k], tr.thrust[k]) for k in i}) == 1
+    assert abs(tr.roll_sp[i[0]]) < 1e-6 or abs(abs(tr.roll_sp[i[0]]) - 180.0) < 1e-6
+
+
 def test_latency_delays_the_first_setpoint_by_the_delay():
-    r0 = run_once(CFG, RunSpec("stationary", 1), record=True)
+    r0 = run_once(CFG, RunSpec("stationary", 1, protocol="controller"), record=True)
     assert r0.trajectory.mode[0] == "pn"
     cfg = with_overrides(CFG, {"sim": {"camera": {"delay": 0.1}}})
-    r = run_once(cfg, RunSpec("stationary", 1), record=True)
+    r = run_once(cfg, RunSpec("stationary", 1, protocol="controller"), record=True)
     assert r.trajectory.mode[:3] == ["init"] * 3 and r.trajectory.mode[3] == "pn"
+    # The engagement: acquire_frames boxes after the first arrives, it engages.
+    e = run_once(cfg, RunSpec("stationary", 1), record=True)
+    n = CFG.app.acquire_frames
+    assert e.trajectory.mode[:3] == ["init"] * 3 and e.trajectory.mode[3:3 + n - 1] == ["ACQUIRE"] * (n - 1)
+    assert e.trajectory.mode[3 + n - 1] == "ENGAGE"
 
 
 def test_controller_gets_only_time_box_and_attitude(monkeypatch):
@@ -79,23 +114,32 @@ def test_controller_gets_only_time_box_and_attitude(monkeypatch):
 
     monkeypatch.setattr(PNController, "step", spy)
     cfg = with_overrides(CFG, {"sim": {"camera": {"delay": 0.1}}})
-    r = run_once(cfg, RunSpec("linear_fast", 2))
+    r = run_once(cfg, RunSpec("linear_fast", 2, protocol="controller"))
     assert len(seen) == r.frames - 3  # three frames still in flight at the end
+    run_once(cfg, RunSpec("linear_fast", 2))  # the engagement steps the controller the same way
     for args, kwargs in seen:
-        assert not kwargs and len(args) == 3
-        t, box, q = args
+        # Time, box, attitude, the accelerometer (specific force, body FRD) and the current time: no position,
+        # no velocity.
+        assert not kwargs and len(args) == 5
+        t, box, q, acc, now = args
         assert isinstance(t, float) and (box is None or isinstance(box, BoundingBox))
         assert isinstance(q, np.ndarray) and q.shape == (4,) and math.isclose(np.linalg.norm(q), 1.0)
+        assert isinstance(acc, np.ndarray) and acc.shape == (3,)
+        assert np.all(np.isfinite(acc)) and np.linalg.norm(acc) < 40.0
+        assert now == pytest.approx(t + 0.1)  # the frame's age is its delay
         if box is not None:
             assert box.t == t  # the capture time of the frame, 100 ms before it arrived
-    ts = [a[0] for a, _ in seen]
+    ts = [a[0] for a, _ in seen[:len(seen) // 2]]
     assert np.allclose(np.diff(ts), 1 / 30)
 
 
 def test_baseline_and_true_vrel_controllers_run():
     for ctrl in ("baseline", "pn_true_vrel"):
-        o = run_once(CFG, RunSpec("linear_slow", 0, controller=ctrl)).outcome
+        o = run_once(CFG, RunSpec("linear_slow", 0, controller=ctrl, protocol="controller")).outcome
         assert o.crossed or o.reason in ("fov_lost", "timeout", "ground")
+        e = run_once(CFG, RunSpec("linear_slow", 0, controller=ctrl))
+        assert e.outcome.crossed or e.outcome.reason in ("target_lost", "timeout", "ground", "handback")
+        assert e.engagement["end"] != "ACQUIRE"  # it engaged
 
 
 def test_bad_spec_is_one_clear_error():
@@ -162,8 +206,12 @@ def test_true_vrel_ablation_feeds_the_true_closing_speed(monkeypatch):
         return orig(lambda_dot, n, k_pn, v_rel_bar)
 
     monkeypatch.setattr(guidance, "pn_demand", spy)
-    run_once(CFG, RunSpec("stationary", 3))
-    assert set(seen) == {CFG.guidance.v_rel_bar}
+    fixed = with_overrides(CFG, {"guidance": {"closing_speed": "fixed"}})
+    run_once(fixed, RunSpec("stationary", 3))
+    assert set(seen) == {CFG.guidance.v_rel_bar}  # the paper: a constant
+    seen.clear()
+    run_once(CFG, RunSpec("stationary", 3, protocol="controller"))  # PN until the gate plane: the lag cap acts
+    assert max(seen) <= CFG.guidance.v_rel_bar and min(seen) < CFG.guidance.v_rel_bar  # estimate: lowered near the gate
     seen.clear()
     r = run_once(CFG, RunSpec("stationary", 3, controller="pn_true_vrel"), record=True)
     # Closing speed to a stationary gate = speed along the LOS: starts at 10 cos(angle) m/s and grows.
@@ -177,12 +225,15 @@ def test_per_run_setpoint_metrics_match_the_recorded_setpoints():
     r = run_once(CFG, RunSpec("planar", 3), record=True)
     tr = r.trajectory
     roll, pitch = np.array(tr.roll_sp), np.array(tr.pitch_sp)
-    assert np.isfinite(roll).all()  # no delay: every frame's command came from the controller
+    cmd = np.isfinite(roll)  # no setpoint while acquiring (PX4 holds); then one per frame (no delay)
+    n = CFG.app.acquire_frames
+    assert not cmd[:n - 1].any() and cmd[n - 1:].all()
+    roll, pitch, t = roll[cmd], pitch[cmd], np.array(tr.t)[cmd]
     # Independent: the tilt of the held command, frame by frame (the same commands, each at least once).
     expect = np.degrees(np.arccos(np.cos(np.radians(roll)) * np.cos(np.radians(pitch)))).max()
     assert r.max_tilt_deg == pytest.approx(expect, abs=1e-9)
     assert r.max_tilt_deg == pytest.approx(float(tilt_deg(roll, pitch).max()), abs=1e-9)
-    assert r.roll_osc == oscillation(np.array(tr.t), roll)
+    assert r.roll_osc == oscillation(t, roll)
     d = r.as_dict(RADII)
     assert d["max_tilt_deg"] == r.max_tilt_deg and d["roll_osc_amp_deg"] == r.roll_osc.amplitude_deg
     assert 0.0 <= d["max_tilt_deg"] < 90.0 and d["roll_osc_rms_rate_dps"] >= 0.0

@@ -1,0 +1,382 @@
+"""The engagement: every decision between "a gate may be in view" and "hand the vehicle back", pure.
+
+One object, stepped once per camera frame (the frame's capture time, its box or None, the attitude
+estimate at that time, the barometric altitude above take-off, link/pilot events). It returns a
+``Decision``: the phase, the setpoint to stream (or None: we do not command), the outcome when the
+engagement ends, the reason of a phase change, and gate events. It sees no position, no velocity,
+no truth: ``Engagement.step``'s signature is the proof. The flight app (companion/app/flight.py),
+the in-process simulator (companion/sim/runner.py) and replay (companion/replay.py) all run it, so
+every study measures the decisions that fly.
+
+Phases::
+
+    ACQUIRE --stable track (acquire_frames valid boxes in a row)--> ENGAGE     (PX4 holds until then)
+    ACQUIRE --no stable track within acquire_timeout--> LAND (NO_TARGET)
+    ENGAGE  --close (time-to-contact or box size)--> PASS  (on_close=fly_through)
+                                                 \\-> RECOVER (on_close=pull_up: nose up, brake, climb)
+    PASS    --evidence: the box gone, or far smaller (the next gate behind)--> RECOVER, pass confirmed
+            --pass_timeout without evidence--> RECOVER, pass NOT confirmed (never counted as passed)
+    RECOVER --recover_time, next gate tracked (a new one)--> ENGAGE
+            --recover_time--> HANDBACK (OK)
+    ENGAGE / PASS / RECOVER --abort--> ABORT (TARGET_LOST, MAX_ENGAGEMENT, ALTITUDE_FLOOR,
+                                              PILOT_TAKEOVER, LINK_LOST)
+
+The pass flies straight (``guidance.straight_pass``): zero PN demand, optical axis on the last
+filtered LOS, no roll about it, thrust for level flight; the last PN attitude is never held.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal, Protocol
+
+import numpy as np
+
+from companion import guidance
+from companion.app.safety import CloseDetector, SafetyLimits
+from companion.app.states import Reason
+from companion.frames import P_NED_ENU, R_from_euler_ned_deg, R_from_quat_wxyz, euler_ned_deg_from_R
+from companion.guidance import Setpoint
+from perception.types import BoundingBox
+
+if TYPE_CHECKING:
+    from companion.app.config import AppConfig, SafetyConfig
+    from companion.config import Config
+
+
+class Phase(enum.Enum):
+    ACQUIRE = "ACQUIRE"  # PX4 holds; looking for a stable track
+    ENGAGE = "ENGAGE"  # PN on the box
+    PASS = "PASS"  # gate close: flying straight through it until it is behind
+    RECOVER = "RECOVER"  # level, a little above hover thrust; maybe the next gate
+    HANDBACK = "HANDBACK"  # end: stop commanding, PX4 holds (outcome OK)
+    LAND = "LAND"  # end: never engaged (NO_TARGET); PX4 holds and lands
+    ABORT = "ABORT"  # end: an abort decision (reason in Decision.reason)
+
+    @property
+    def done(self) -> bool:
+        return self in (Phase.HANDBACK, Phase.LAND, Phase.ABORT)
+
+    @property
+    def commanding(self) -> bool:
+        """Phases in which a setpoint is streamed (offboard)."""
+        return self in (Phase.ENGAGE, Phase.PASS, Phase.RECOVER)
+
+
+LinkEvent = Literal["offboard_lost", "disarmed", "link_lost"]
+PassStatus = Literal["engaged", "confirmed", "not_confirmed", "pulled_up"]
+
+
+class Steering(Protocol):
+    """What the engagement needs of a controller: ``PNController`` (or an ablation wrapped like it)."""
+
+    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray) -> object: ...
+
+    def reset(self) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class EngagementParams:
+    acquire_frames: int
+    acquire_timeout: float  # s
+    on_close: Literal["fly_through", "pull_up"]
+    pass_timeout: float  # s; longest PASS without evidence
+    recover_time: float  # s
+    recover_thrust_scale: float
+    pull_up_pitch: float  # deg
+    next_gate: bool
+    max_gates: int
+    hover_thrust: float  # 0..1
+    thrust_min: float  # 0..1
+    f_min: float  # m/s^2, mass-normalised thrust limits (the straight pass stays inside)
+    f_max: float
+    width: int  # image size, px
+    height: int
+    pass_gone_frames: int = 3  # frames of evidence that the gate is behind
+    pass_shrink: float = 0.5  # a box this much smaller than the pass's largest is another gate (behind)
+    complete_boxes: bool = True  # boxes cut by one image border are completed to a round gate
+
+    @classmethod
+    def from_config(cls, cfg: Config, hover_thrust: float | None = None, f_min: float | None = None,
+                    f_max: float | None = None) -> EngagementParams:
+        """From the config; thrust numbers default to the airframe's (the app passes the autopilot's)."""
+        a = cfg.app
+        return cls(a.acquire_frames, a.acquire_timeout, a.on_close, a.pass_timeout, a.recover_time,
+                   a.recover_thrust_scale, a.pull_up_pitch, a.next_gate, a.max_gates,
+                   cfg.airframe.hover_thrust if hover_thrust is None else hover_thrust, cfg.airframe.thrust_min,
+                   cfg.airframe.f_min if f_min is None else f_min, cfg.airframe.f_max if f_max is None else f_max,
+                   cfg.camera.width, cfg.camera.height)
+
+
+@dataclass
+class GatePass:
+    """One engaged gate, as the engagement saw it (the camera's evidence; truth is judged elsewhere)."""
+
+    gate: int  # 1, 2, ... in engagement order
+    t_engage: float
+    status: PassStatus = "engaged"
+    t_close: float | None = None
+    t_end: float | None = None
+    evidence: str = ""
+
+    def as_dict(self) -> dict:
+        return {"gate": self.gate, "status": self.status, "t_engage": self.t_engage, "t_close": self.t_close,
+                "t_end": self.t_end, "evidence": self.evidence}
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    t: float
+    phase: Phase
+    setpoint: Setpoint | None  # None: nothing to stream (ACQUIRE: PX4 holds; an end: stop commanding)
+    control: object | None = None  # the controller's output when it ran (ENGAGE), for the log
+    why: str = ""  # reason of the phase change in this step ("" if none)
+    previous: Phase | None = None  # the phase before this step, when it changed
+    reason: Reason | None = None  # the outcome of an end phase (OK, NO_TARGET, an abort)
+    events: tuple[str, ...] = ()  # gate events of this step ("gate 1 engaged", "gate 1 passed (...)", ...)
+
+    @property
+    def changed(self) -> bool:
+        return self.previous is not None
+
+
+@dataclass
+class Engagement:
+    """The engagement state machine around one controller. Pure: the caller brings time and inputs."""
+
+    params: EngagementParams
+    controller: Steering
+    close: CloseDetector
+    limits: SafetyLimits
+    phase: Phase = Phase.ACQUIRE
+    passes: list[GatePass] = field(default_factory=list)
+    _t0: float | None = None
+    _streak: int = 0  # consecutive valid boxes
+    _t_phase: float = 0.0  # when the current phase began
+    _engage_start: float = 0.0
+    _last_valid: float = 0.0
+    _los_enu: np.ndarray | None = None  # the last filtered LOS of the engagement (ENU)
+    _sp: Setpoint | None = None  # the held setpoint of PASS / RECOVER
+    _peak: float = 0.0  # largest box side during the pass, px
+    _gone: int = 0  # frames of "gate behind" evidence
+    _old_gone: bool = True  # the last engaged gate has left the view (a track now is a new gate)
+
+    @classmethod
+    def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
+        return cls.create(params or EngagementParams.from_config(cfg), controller, cfg.app, cfg.safety)
+
+    @classmethod
+    def create(cls, params: EngagementParams, controller: Steering, app: AppConfig,
+               safety: SafetyConfig) -> Engagement:
+        return cls(params, controller, CloseDetector(app, params.width), SafetyLimits(safety))
+
+    # -- the step ------------------------------------------------------------------------------------
+    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray, baro_rel_alt: float | None,
+             events: Iterable[LinkEvent] = ()) -> Decision:
+        """One frame captured at ``t`` (s, any monotonic clock): its box (or None), the attitude estimate at
+        ``t`` (NED/FRD wxyz), the barometric altitude above take-off (m, None if unknown), link/pilot events."""
+        if self._t0 is None:
+            self._t0 = self._t_phase = t
+        p = self.params
+        valid = box is not None and box.is_valid(p.width, p.height)
+        if valid and p.complete_boxes:
+            whole = complete_clipped_box(box, p.width, p.height)
+            box = whole if whole.is_valid(p.width, p.height) else box
+        self._streak = self._streak + 1 if valid else 0
+        ph = self.phase
+        if ph.done:
+            return Decision(t, ph, None)
+        ev = set(events)
+        if ph.commanding and ev:
+            if "link_lost" in ev:
+                return self._end(t, Phase.ABORT, Reason.LINK_LOST, "telemetry lost")
+            what = "vehicle left OFFBOARD" if "offboard_lost" in ev else "vehicle disarmed"
+            return self._end(t, Phase.ABORT, Reason.PILOT_TAKEOVER, what)
+        if ph is Phase.ACQUIRE:
+            return self._acquire(t, box, q_wxyz_ned_frd)
+        floor = self.limits.cfg.altitude_floor
+        if ph is Phase.ENGAGE:
+            return self._engage_step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt)
+        if baro_rel_alt is not None and math.isfinite(baro_rel_alt) and baro_rel_alt < floor:
+            return self._end(t, Phase.ABORT, Reason.ALTITUDE_FLOOR,
+                             f"barometric altitude {baro_rel_alt:.1f} m below the floor {floor:.1f} m")
+        if ph is Phase.PASS:
+            return self._pass_step(t, box, valid, q_wxyz_ned_frd)
+        return self._recover_step(t, box, valid, q_wxyz_ned_frd)
+
+    # -- phases ----------------------------------------------------------------------------------------
+    def _acquire(self, t: float, box: BoundingBox | None, q: np.ndarray) -> Decision:
+        p = self.params
+        if self._streak >= p.acquire_frames:
+            return self._start_engagement(t, box, q, f"stable track for {self._streak} frames")
+        if t - self._t_phase > p.acquire_timeout:
+            return self._end(t, Phase.LAND, Reason.NO_TARGET, f"no stable track within {p.acquire_timeout:.1f} s")
+        return Decision(t, Phase.ACQUIRE, None)
+
+    def _start_engagement(self, t: float, box: BoundingBox | None, q: np.ndarray, why: str) -> Decision:
+        prev = self.phase
+        self.controller.reset()
+        self.close.reset()
+        self._engage_start = self._last_valid = t
+        self._los_enu = None
+        self.passes.append(GatePass(len(self.passes) + 1, t))
+        self._go(Phase.ENGAGE, t)
+        out = self.controller.step(t, box, q)
+        self._note_los(out)
+        return Decision(t, Phase.ENGAGE, out.setpoint, out, why, prev,
+                        events=(f"gate {self.passes[-1].gate} engaged",))
+
+    def _engage_step(self, t: float, box: BoundingBox | None, valid: bool, q: np.ndarray,
+                     baro: float | None) -> Decision:
+        out = self.controller.step(t, box, q)
+        if getattr(out, "mode", "") == "pn":
+            self._last_valid = t
+        self._note_los(out)
+        abort = self.limits.check(t, self._engage_start, self._last_valid, baro)
+        if abort is not None:
+            return self._end(t, Phase.ABORT, abort.reason, abort.detail, out)
+        est = self.close.update(t, box, getattr(out, "mode", "") == "pn")
+        if not est.close:
+            return Decision(t, Phase.ENGAGE, out.setpoint, out)
+        gp = self.passes[-1]
+        gp.t_close = t
+        self._peak = max(box.w, box.h) if valid and box is not None else 0.0
+        self._gone = 0
+        if self.params.on_close == "pull_up":
+            gp.status, gp.t_end, gp.evidence = "pulled_up", t, est.why
+            self._sp = self._recover_setpoint(q, pull_up=True)
+            self._old_gone = False
+            self._go(Phase.RECOVER, t)
+            return Decision(t, Phase.RECOVER, self._sp, out, f"pull-up: {est.why}", Phase.ENGAGE,
+                            events=(f"gate {gp.gate} intercept: pulled up",))
+        self._sp = self._straight_setpoint(q)
+        self._go(Phase.PASS, t)
+        return Decision(t, Phase.PASS, self._sp, out, f"gate close: {est.why}", Phase.ENGAGE,
+                        events=(f"gate {gp.gate} close",))
+
+    def _pass_step(self, t: float, box: BoundingBox | None, valid: bool, q: np.ndarray) -> Decision:
+        p = self.params
+        gp = self.passes[-1]
+        size = max(box.w, box.h) if valid and box is not None else 0.0
+        behind = size <= p.pass_shrink * self._peak
+        self._gone = self._gone + 1 if behind else 0
+        self._peak = max(self._peak, size)
+        if self._gone >= p.pass_gone_frames:
+            gp.status = "confirmed"
+            gp.evidence = ("the gate left the view" if size == 0.0
+                           else f"the box shrank to {size:.0f} px from {self._peak:.0f} px (the next gate)")
+            self._old_gone = True
+            return self._to_recover(t, q, f"gate {gp.gate} passed ({gp.evidence})",
+                                    f"gate {gp.gate} passed")
+        if t - self._t_phase > p.pass_timeout:
+            gp.status = "not_confirmed"
+            gp.evidence = f"the gate was still in view after {p.pass_timeout:.1f} s"
+            self._old_gone = False
+            return self._to_recover(t, q, f"gate {gp.gate} pass NOT confirmed ({gp.evidence})",
+                                    f"gate {gp.gate} pass not confirmed")
+        return Decision(t, Phase.PASS, self._sp)
+
+    def _to_recover(self, t: float, q: np.ndarray, why: str, event: str) -> Decision:
+        self.passes[-1].t_end = t
+        self._sp = self._recover_setpoint(q)
+        self._streak = 0  # the next gate's track counts from here, not the passed gate's
+        self._go(Phase.RECOVER, t)
+        return Decision(t, Phase.RECOVER, self._sp, None, why, Phase.PASS, events=(event,))
+
+    def _recover_step(self, t: float, box: BoundingBox | None, valid: bool, q: np.ndarray) -> Decision:
+        p = self.params
+        if not self._old_gone:
+            # After an unconfirmed pass (or a pull-up) the track may still be that gate: only once it has
+            # left the view (or shrunk) is a track a new gate. The same gate is never engaged twice.
+            size = max(box.w, box.h) if valid and box is not None else 0.0
+            self._gone = self._gone + 1 if size <= p.pass_shrink * self._peak else 0
+            if self._gone >= p.pass_gone_frames:
+                self._old_gone = True
+                self._streak = 1 if valid else 0
+        if t - self._t_phase < p.recover_time:
+            return Decision(t, Phase.RECOVER, self._sp)
+        passed = sum(g.status == "confirmed" for g in self.passes)
+        if (p.next_gate and p.on_close == "fly_through" and self._old_gone and self._streak >= p.acquire_frames
+                and len(self.passes) < p.max_gates):
+            return self._start_engagement(t, box, q, f"next gate tracked for {self._streak} frames")
+        if p.on_close == "pull_up":
+            why = "pulled up before the target"
+        else:
+            unconf = sum(g.status == "not_confirmed" for g in self.passes)
+            why = f"{passed} gate(s) passed" + (f", {unconf} pass(es) not confirmed" if unconf else "")
+            why += "; no next gate"
+        return self._end(t, Phase.HANDBACK, Reason.OK, why)
+
+    # -- helpers ---------------------------------------------------------------------------------------
+    def _go(self, phase: Phase, t: float) -> None:
+        self.phase = phase
+        self._t_phase = t
+
+    def _end(self, t: float, phase: Phase, reason: Reason, why: str, control: object | None = None) -> Decision:
+        prev = self.phase
+        if self.passes and self.passes[-1].status == "engaged" and prev in (Phase.ENGAGE, Phase.PASS):
+            self.passes[-1].t_end = t
+            self.passes[-1].evidence = f"ended by {reason.name}"
+        self._go(phase, t)
+        return Decision(t, phase, None, control, why, prev, reason)
+
+    def _note_los(self, out: object) -> None:
+        los = getattr(out, "los_ned", None)
+        if los is not None:
+            self._los_enu = P_NED_ENU @ np.asarray(los, dtype=float)
+
+    def _straight_setpoint(self, q: np.ndarray) -> Setpoint:
+        p = self.params
+        l = self._los_enu  # noqa: E741
+        if l is None:  # no LOS was ever filtered (cannot happen after a close estimate): look straight ahead
+            R = R_from_quat_wxyz(q)
+            l = P_NED_ENU @ R[:, 0]  # noqa: E741
+        sol = guidance.straight_pass(l, p.f_min, p.f_max)
+        return guidance.to_setpoint(sol.R_W_B, sol.f_th, p.hover_thrust, p.thrust_min)
+
+    def _recover_setpoint(self, q: np.ndarray, pull_up: bool = False) -> Setpoint:
+        p = self.params
+        yaw = euler_ned_deg_from_R(R_from_quat_wxyz(q))[2]
+        thrust = min(1.0, p.hover_thrust * p.recover_thrust_scale)
+        if not pull_up:
+            return guidance.hover_setpoint(yaw, thrust)
+        # Nose up: the thrust tilts backwards (brakes); its vertical part still carries scale x weight.
+        pitch = p.pull_up_pitch
+        return Setpoint(0.0, pitch, yaw, min(1.0, thrust / math.cos(math.radians(pitch))),
+                        R_from_euler_ned_deg(0.0, pitch, yaw))
+
+    # -- what the engagement claims ----------------------------------------------------------------------
+    @property
+    def passes_confirmed(self) -> int:
+        return sum(g.status == "confirmed" for g in self.passes)
+
+    @property
+    def passes_not_confirmed(self) -> int:
+        return sum(g.status == "not_confirmed" for g in self.passes)
+
+
+def complete_clipped_box(box: BoundingBox, width: int, height: int, edge_px: float = 1.0) -> BoundingBox:
+    """A gate box cut by one image border, completed to the gate's round shape.
+
+    A detector's box of a ring that reaches past one border (top, say) covers only the visible part: its
+    centre is pulled towards the image centre, and the LOS with it. When exactly one side of an axis
+    touches the border and the other axis is whole, the ring's extent along the cut axis is taken as its
+    extent along the whole one (a round gate seen near head-on), anchored at the side that is not cut.
+    Boxes cut on both sides of an axis (the gate fills the image) or on both axes are left as they are.
+    """
+    x0, y0, x1, y1 = box.xyxy
+    cut_l, cut_r = x0 <= edge_px, x1 >= width - edge_px
+    cut_t, cut_b = y0 <= edge_px, y1 >= height - edge_px
+    cut_x, cut_y = cut_l or cut_r, cut_t or cut_b
+    if cut_x == cut_y or (cut_l and cut_r) or (cut_t and cut_b):
+        return box
+    if cut_y:
+        size = max(box.w, box.h)
+        y0, y1 = (y1 - size, y1) if cut_t else (y0, y0 + size)
+    else:
+        size = max(box.w, box.h)
+        x0, x1 = (x1 - size, x1) if cut_l else (x0, x0 + size)
+    return BoundingBox((x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0, box.confidence, box.t)
