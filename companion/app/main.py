@@ -48,6 +48,8 @@ def register(subparsers: Any) -> None:
     from companion.app.record import add_record_arguments
 
     add_record_arguments(p)
+    p.add_argument("--yes", "-y", action="store_true",
+                   help="do not ask to confirm the pre-flight summary before arming (it is still printed and logged)")
     p.add_argument("--shadow", action="store_true",
                    help="shadow mode: the whole pipeline beside the pilot; setpoints logged and plotted, never sent "
                         "(no arming, no mode change, no offboard)")
@@ -93,8 +95,10 @@ def _cmd_fly(args: argparse.Namespace) -> int:
                                              record_kw=record_kwargs(args)))
         print(f"companion: shadow log {folder}", file=sys.stderr)
         return code
+    from companion.app.preflight import stdin_confirm
+
     reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot, record=args.record,
-                                        record_kw=record_kwargs(args)))
+                                        record_kw=record_kwargs(args), confirm=None if args.yes else stdin_confirm))
     print(f"companion: flight log {folder}", file=sys.stderr)
     return int(reason)
 
@@ -157,6 +161,7 @@ async def fly(
     alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
     record: str | Path | None = None,
     record_kw: dict[str, Any] | None = None,
+    confirm: Callable[[str], Awaitable[bool]] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
     """One flight, start to safe state. Returns (outcome, flight folder, summary).
 
@@ -187,7 +192,7 @@ async def fly(
             camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
                                      link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
-                        status_line=status_line, perception_in_thread=in_thread)
+                        status_line=status_line, perception_in_thread=in_thread, confirm=confirm)
         loop = asyncio.get_running_loop()
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
