@@ -73,6 +73,7 @@ class Reason(enum.IntEnum):
     EXCEPTION = 22
     SIGNAL = 23  # SIGTERM / SIGINT: orderly hand-over
     CAMERA_FAILED = 24
+    NOT_CONFIRMED = 25  # the operator did not confirm the pre-flight summary (companion/app/preflight.py)
 
 
 _NORMAL: dict[State, frozenset[State]] = {
