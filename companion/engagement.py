@@ -95,6 +95,7 @@ class EngagementParams:
     f_max: float
     width: int  # image size, px
     height: int
+    max_tilt: float = math.pi / 2  # rad; the straight pass stays inside the airframe's tilt envelope
     pass_gone_frames: int = 3  # frames of evidence that the gate is behind
     pass_shrink: float = 0.5  # a box this much smaller than the pass's largest is another gate (behind)
     complete_boxes: bool = True  # boxes cut by one image border are completed to a round gate
@@ -108,7 +109,7 @@ class EngagementParams:
                    a.recover_thrust_scale, a.pull_up_pitch, a.next_gate, a.max_gates,
                    cfg.airframe.hover_thrust if hover_thrust is None else hover_thrust, cfg.airframe.thrust_min,
                    cfg.airframe.f_min if f_min is None else f_min, cfg.airframe.f_max if f_max is None else f_max,
-                   cfg.camera.width, cfg.camera.height)
+                   cfg.camera.width, cfg.camera.height, math.radians(cfg.airframe.max_tilt))
 
 
 @dataclass
@@ -334,7 +335,7 @@ class Engagement:
         if l is None:  # no LOS was ever filtered (cannot happen after a close estimate): look straight ahead
             R = R_from_quat_wxyz(q)
             l = P_NED_ENU @ R[:, 0]  # noqa: E741
-        sol = guidance.straight_pass(l, p.f_min, p.f_max)
+        sol = guidance.straight_pass(l, p.f_min, p.f_max, max_tilt=p.max_tilt)
         return guidance.to_setpoint(sol.R_W_B, sol.f_th, p.hover_thrust, p.thrust_min)
 
     def _recover_setpoint(self, q: np.ndarray, pull_up: bool = False) -> Setpoint:

@@ -35,7 +35,11 @@ def register(subparsers: Any) -> None:
     codes = "\n".join(f"  {r.value:3d}  {r.name}" for r in Reason)
     p = subparsers.add_parser("fly", help="fly through gates: connect, take off, engage, pass, land (logs the flight)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                              epilog=f"exit codes (the flight's outcome):\n{codes}")
+                              epilog=f"exit codes (the flight's outcome):\n{codes}\n"
+                              "GATE_MISSED: ground truth (simulated PX4, PX4 SITL) says a gate's plane was crossed\n"
+                              "  outside its radius, or fewer gates were flown through than passes claimed.\n"
+                              "PASS_NOT_CONFIRMED: no ground truth (the field) and a pass ended on app.pass_timeout\n"
+                              "  without evidence that the gate went behind.")
     add_config_arguments(p)
     p.add_argument("--url", help="mavsdk connection URL (overrides link.url)")
     p.add_argument("--synthetic", action="store_true",
@@ -96,8 +100,9 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
-    """(camera source, perception, run perception in a thread) for the configured camera."""
+def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+    """(camera source, perception, run perception in a thread) for the configured camera; the synthetic
+    camera's gates go to the log and to ``judge`` (companion/app/outcome.py, ground truth)."""
     from companion.app.flight import gate_logger
     from companion.app.synthcam import SyntheticCamera, VehiclePose
 
@@ -112,7 +117,7 @@ def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
             # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
             return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
 
-        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
+        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log, judge))
         if cam.render == "geometric":
             return cam, cam.perception(), False
         from perception.pipeline import Pipeline
@@ -140,6 +145,7 @@ async def fly(
     from companion.app.flight import FlightApp
     from companion.app.link import VehicleLink
     from companion.app.notify import Notifier
+    from companion.app.outcome import GateJudge
     from companion.app.states import Reason
     from companion.config import config_as_dict
     from companion.flightlog import FlightLog
@@ -151,9 +157,10 @@ async def fly(
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
                                    else log.event(f"link {kind} {detail}"))
     try:
-        camera, perception, in_thread = build_camera(cfg, link, log)
+        judge = GateJudge()  # ground truth, where a simulator provides it: scores the gates, never steers
+        camera, perception, in_thread = build_camera(cfg, link, log, judge)
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
-                        status_line=status_line, perception_in_thread=in_thread)
+                        status_line=status_line, perception_in_thread=in_thread, judge=judge)
         loop = asyncio.get_running_loop()
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
