@@ -17,6 +17,7 @@ COMMAND_MODULES = (
     "companion.app.main",
     "companion.check",
     "companion.calibrate",
+    "perception.evaluate",  # companion perception eval
 )
 
 

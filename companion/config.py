@@ -33,6 +33,8 @@ from companion.configbase import (
     parse_override,
     read_yaml,
 )
+from companion.hover import HoverConfig
+from companion.px4sitl.config import PX4Config
 from companion.sim.config import SimConfig
 
 G = 9.81  # m/s^2, the paper's |g|
@@ -158,6 +160,8 @@ class Config(Section):
     app: AppConfig = AppConfig()
     log: LogConfig = LogConfig()
     sim: SimConfig = SimConfig()
+    hover: HoverConfig = HoverConfig()  # in-flight hover-thrust estimate (companion/hover.py)
+    px4: PX4Config = PX4Config()
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Config:

@@ -44,6 +44,22 @@ class PerceptionConfig(Section):
     smoothing: Number = Field(
         0.3, ge=0.0, le=1.0, description="box smoothing 0..1 (0 = raw measurement, 1 = heavy); sets Kalman noise"
     )
+    # Consistency rules (perception/tracker.py: plausible, consistent; perception/pipeline.py: challenger)
+    max_aspect: Number = Field(
+        3.0, ge=1.0, le=100.0,
+        description="max(w/h, h/w) of a gate box not cut by the image border (a gate seen 70 deg off-axis: ~2.9)",
+    )
+    max_growth_rate: Number = Field(
+        4.0, gt=0.0, le=100.0,
+        description="1/s, box size change rate a measurement may show vs the prediction (approach: speed/distance)",
+    )
+    switch_frames: int = Field(
+        5, ge=2, le=100, description="frames a distinct, better-scoring candidate must persist to take the track"
+    )
+    min_track_score: Number = Field(
+        0.25, ge=0.0, lt=1.0,
+        description="track score (confidence averaged over frames, misses count 0) below which no box is output",
+    )
 
     # Camera source (perception/sources.py)
     source: str = Field("0", description="V4L2 index, video file, GStreamer pipeline, rtsp:// URL or 'synthetic'")

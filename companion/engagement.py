@@ -329,19 +329,29 @@ class Engagement:
         if los is not None:
             self._los_enu = P_NED_ENU @ np.asarray(los, dtype=float)
 
-    def _straight_setpoint(self, q: np.ndarray) -> Setpoint:
+    def _thrust_model(self) -> tuple[float, float, float, float]:
+        """(hover thrust, thrust_min, f_min, f_max): the controller's current numbers when it has them (the app
+        may re-estimate the hover thrust in flight, companion/hover.py), else the parameters'."""
+        cp = getattr(self.controller, "p", None)
+        gp = getattr(cp, "guidance", None)
+        if cp is not None and gp is not None and hasattr(cp, "hover_thrust"):
+            return cp.hover_thrust, cp.thrust_min, gp.f_min, gp.f_max
         p = self.params
+        return p.hover_thrust, p.thrust_min, p.f_min, p.f_max
+
+    def _straight_setpoint(self, q: np.ndarray) -> Setpoint:
+        hover, thrust_min, f_min, f_max = self._thrust_model()
         l = self._los_enu  # noqa: E741
         if l is None:  # no LOS was ever filtered (cannot happen after a close estimate): look straight ahead
             R = R_from_quat_wxyz(q)
             l = P_NED_ENU @ R[:, 0]  # noqa: E741
-        sol = guidance.straight_pass(l, p.f_min, p.f_max, max_tilt=p.max_tilt)
-        return guidance.to_setpoint(sol.R_W_B, sol.f_th, p.hover_thrust, p.thrust_min)
+        sol = guidance.straight_pass(l, f_min, f_max, max_tilt=self.params.max_tilt)
+        return guidance.to_setpoint(sol.R_W_B, sol.f_th, hover, thrust_min)
 
     def _recover_setpoint(self, q: np.ndarray, pull_up: bool = False) -> Setpoint:
         p = self.params
         yaw = euler_ned_deg_from_R(R_from_quat_wxyz(q))[2]
-        thrust = min(1.0, p.hover_thrust * p.recover_thrust_scale)
+        thrust = min(1.0, self._thrust_model()[0] * p.recover_thrust_scale)
         if not pull_up:
             return guidance.hover_setpoint(yaw, thrust)
         # Nose up: the thrust tilts backwards (brakes); its vertical part still carries scale x weight.

@@ -11,6 +11,13 @@ Policy (one state machine, both tracker kinds):
   The Kalman-filtered box (smoothing before the LOS) is the output.
 * misses: the Kalman prediction is output for up to ``coast_time`` with decaying confidence, then
   the target is lost and the search starts again.
+* consistency (perception/tracker.py): only plausible boxes (aspect of a gate unless cut by the border)
+  acquire or continue a track, and only measurements whose size change an approach explains continue it.
+* a better candidate: the best detection that does not continue the track is followed as a challenger;
+  once it has been seen ``switch_frames`` frames in a row and scores clearly better than the track
+  (``TrackScore``), it takes the track. While such a challenger is building up, the target is uncertain:
+  no box is output (the app treats that as no target), rather than a box that may be the wrong thing.
+* no confident target: no box either while the track's score is below ``min_track_score``.
 
 The output box's ``t`` is the frame's capture time.
 """
@@ -25,12 +32,19 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from perception.detector import Detector
-from perception.tracker import BoxKalman, NanoTracker, associate, iou
+from perception.tracker import BoxKalman, NanoTracker, TrackScore, associate, consistent, iou, plausible
 from perception.types import BoundingBox
 
 if TYPE_CHECKING:
     from companion.config import Config
     from companion.config_perception import PerceptionConfig
+
+
+@dataclass
+class _Candidate:
+    box: BoundingBox
+    score: TrackScore
+    misses: int = 0
 
 
 @dataclass
@@ -44,6 +58,9 @@ class PipelineStats:
     rejected_jumps: int = 0
     acquisitions: int = 0
     losses: int = 0
+    rejected_inconsistent: int = 0  # implausible aspect or size change
+    switches: int = 0  # the track moved to a persistently better candidate
+    unconfident: int = 0  # frames with no box because the target was uncertain
     detector_ms: list[float] = field(default_factory=list)
     tracker_ms: list[float] = field(default_factory=list)
     total_ms: list[float] = field(default_factory=list)
@@ -56,6 +73,8 @@ class PipelineStats:
             "frames": self.frames, "detector_runs": self.detector_runs, "tracker_runs": self.tracker_runs,
             "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted,
             "rejected_jumps": self.rejected_jumps, "acquisitions": self.acquisitions, "losses": self.losses,
+            "rejected_inconsistent": self.rejected_inconsistent, "switches": self.switches,
+            "unconfident": self.unconfident,
             "detector_ms_median": med(self.detector_ms), "tracker_ms_median": med(self.tracker_ms),
             "pipeline_ms_median": med(self.total_ms),
         }
@@ -90,6 +109,8 @@ class Pipeline:
         self.frame_index = 0
         self.last_conf = 0.0
         self.last_detections: list[BoundingBox] = []
+        self.score: TrackScore | None = None
+        self.challenger: _Candidate | None = None
         if self.tracker is not None:
             self.tracker.active = False
 
@@ -121,8 +142,13 @@ class Pipeline:
         self.last_detections = dets
         return dets
 
+    def _plausible(self, dets: list[BoundingBox]) -> list[BoundingBox]:
+        ok = [d for d in dets if plausible(d, self.width, self.height, self.pc.max_aspect)]
+        self.stats.rejected_inconsistent += len(dets) - len(ok)
+        return ok
+
     def _search(self, frame: np.ndarray, t: float) -> BoundingBox | None:
-        dets = self._detect(frame, t)
+        dets = self._plausible(self._detect(frame, t))
         if not dets:
             self.candidate, self.candidate_count = None, 0
             return None
@@ -143,6 +169,8 @@ class Pipeline:
         self.kf = BoxKalman(best, self.pc.smoothing)
         self.t_measured = t
         self.last_conf = best.confidence
+        self.score = TrackScore(best.confidence)
+        self.challenger = None
         self.candidate, self.candidate_count = None, 0
         self.stats.acquisitions += 1
         self.stats.measured += 1
@@ -167,16 +195,30 @@ class Pipeline:
             if near and score >= self.pc.redetect_below and not due:
                 meas, run_detector = tb, False
         if run_detector:
-            dets = self._detect(frame, t)
-            meas, rejected = associate(pred, dets, self.max_jump_px, self.pc.min_iou)
+            dets = self._plausible(self._detect(frame, t))
+            fits = [d for d in dets if consistent(pred, d, dt, self.pc.max_growth_rate)]
+            meas, rejected = associate(pred, fits, self.max_jump_px, self.pc.min_iou)
             self.stats.rejected_jumps += rejected
+            self.stats.rejected_inconsistent += len(dets) - len(fits)
+            self._follow_challenger([d for d in dets if d is not meas], dt)
             if meas is not None and self.tracker is not None:
                 self.tracker.init(frame, meas)
+        assert self.score is not None
+        self.score.update(meas.confidence if meas is not None else None)
+        ch = self.challenger
+        if ch is not None and ch.score.streak >= self.pc.switch_frames and self._better(ch):
+            return self._switch(frame, ch, t)
+        # Uncertain: a clearly better candidate is building up, or the track itself is weak.
+        uncertain = (ch is not None and ch.score.streak >= self.pc.switch_frames // 2 + 1 and self._better(ch)) or (
+            self.score.value < self.pc.min_track_score)
         if meas is not None:
             box = self.kf.correct(meas)
             self.t_measured = t
             self.last_conf = meas.confidence
             self.stats.measured += 1
+            if uncertain:
+                self.stats.unconfident += 1
+                return None
             return BoundingBox(box.cx, box.cy, box.w, box.h, meas.confidence, t)
         # Miss: coast on the prediction, then give up and search again.
         since = t - (self.t_measured if self.t_measured is not None else t)
@@ -185,10 +227,56 @@ class Pipeline:
             self.stats.losses += 1
             if self.tracker is not None:
                 self.tracker.active = False
+            # a challenger seen often enough becomes the search candidate: re-acquired on its next detection
+            if ch is not None and ch.score.streak >= 1:
+                self.candidate, self.candidate_count = ch.box, min(ch.score.streak, self.pc.confirm_frames - 1)
+            self.challenger = None
             return None
         self.stats.coasted += 1
+        if uncertain:
+            self.stats.unconfident += 1
+            return None
         decay = 1.0 - since / self.pc.coast_time
         return BoundingBox(pred.cx, pred.cy, pred.w, pred.h, self.last_conf * decay, t)
+
+    # -- challenger: the best other candidate, followed over frames ------------------------------
+
+    _MARGIN = 0.1  # score a challenger must lead the track by (confidence units)
+
+    def _better(self, ch: _Candidate) -> bool:
+        assert self.score is not None
+        return ch.score.value > self.score.value + self._MARGIN
+
+    def _follow_challenger(self, others: list[BoundingBox], dt: float) -> None:
+        ch = self.challenger
+        if ch is not None:
+            fits = [d for d in others if consistent(ch.box, d, dt, self.pc.max_growth_rate)]
+            nxt, _ = associate(ch.box, fits, self.max_jump_px, self.pc.min_iou)
+            if nxt is not None:
+                ch.box = nxt
+                ch.misses = 0
+                ch.score.update(nxt.confidence)
+                return
+            ch.score.update(None)
+            ch.misses += 1
+            if ch.misses < 2:
+                return
+            self.challenger = None
+        if others:
+            best = max(others, key=lambda d: d.confidence)
+            self.challenger = _Candidate(best, TrackScore(best.confidence))
+
+    def _switch(self, frame: np.ndarray, ch: _Candidate, t: float) -> BoundingBox:
+        self.kf = BoxKalman(ch.box, self.pc.smoothing)
+        self.score, self.challenger = ch.score, None
+        self.t_measured = t
+        self.last_conf = ch.box.confidence
+        self.stats.switches += 1
+        self.stats.measured += 1
+        if self.tracker is not None:
+            self.tracker.init(frame, ch.box)
+        b = ch.box
+        return BoundingBox(b.cx, b.cy, b.w, b.h, b.confidence, t)
 
     def _clip(self, b: BoundingBox) -> BoundingBox | None:
         """Clip to the image; a box whose centre left the image is no box (the LOS would be invented)."""

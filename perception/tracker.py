@@ -4,6 +4,16 @@
 predicts the box through missed frames. ``NanoTracker`` wraps ``cv2.TrackerNano`` (the paper's
 tracker); it needs two ONNX files that cannot be downloaded here, so a missing or unreadable file
 is refused with one line. ``associate`` picks the detection that continues a track.
+
+Consistency rules (why a box is or is not the gate we track):
+
+* ``plausible``: a gate (square or round) seen up to ~70 deg off-axis has a box aspect within
+  ``max_aspect`` unless the image border cuts it; tall door panels, cabinets and strips are not gates.
+* ``consistent``: a measurement's size may differ from the prediction only as much as an approach
+  (or a retreat) allows in the elapsed time: ``|ln(size / predicted size)| <= max_growth_rate * dt``
+  (floored, so detector jitter on one frame is not a switch).
+* ``TrackScore``: the track's confidence averaged over frames, a miss counting 0; the pipeline
+  outputs no box below ``min_track_score`` and compares candidates by it.
 """
 
 from __future__ import annotations
@@ -50,6 +60,44 @@ def associate(
         if best_key is None or key > best_key:
             best, best_key = d, key
     return best, rejected
+
+
+def touches_border(b: BoundingBox, width: int, height: int, margin: float = 2.0) -> bool:
+    x0, y0, x1, y1 = b.xyxy
+    return x0 <= margin or y0 <= margin or x1 >= width - margin or y1 >= height - margin
+
+
+def plausible(b: BoundingBox, width: int, height: int, max_aspect: float) -> bool:
+    """Could this box be a gate? Aspect within max_aspect (either way) unless the image border cuts it."""
+    if b.w <= 0 or b.h <= 0:
+        return False
+    aspect = max(b.w / b.h, b.h / b.w)
+    return aspect <= max_aspect or touches_border(b, width, height)
+
+
+def consistent(pred: BoundingBox, meas: BoundingBox, dt: float, max_growth_rate: float,
+               floor: float = math.log(1.5)) -> bool:
+    """Is meas's size reachable from the predicted size in dt (approach/retreat at most max_growth_rate 1/s)?"""
+    s_pred = math.sqrt(max(pred.w * pred.h, 1.0))
+    s_meas = math.sqrt(max(meas.w * meas.h, 1.0))
+    return abs(math.log(s_meas / s_pred)) <= max(max_growth_rate * max(dt, 0.0), floor)
+
+
+class TrackScore:
+    """Exponential average of detection confidence per frame (a miss is 0): how sure we are of a track."""
+
+    def __init__(self, confidence: float, keep: float = 0.85) -> None:
+        self.keep = float(keep)
+        self.value = float(confidence)
+        self.frames = 1  # frames since the track/candidate started
+        self.streak = 1  # consecutive frames with a measurement
+
+    def update(self, confidence: float | None) -> float:
+        c = 0.0 if confidence is None else float(confidence)
+        self.value = self.keep * self.value + (1.0 - self.keep) * c
+        self.frames += 1
+        self.streak = self.streak + 1 if confidence is not None else 0
+        return self.value
 
 
 class BoxKalman:

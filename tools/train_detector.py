@@ -8,6 +8,15 @@ count from the budget (printed, and recorded in the JSON, for a rerun with ``--s
 
     .venv/bin/python tools/train_detector.py --minutes 30 --seed 1
     .venv/bin/python tools/train_detector.py --eval-only      # re-measure the shipped model
+    .venv/bin/python tools/train_detector.py --world real --init-onnx perception/models/gate_detector.onnx \
+        --steps 3000 --threads 2 --out DIR                     # real-world frames (perception.realworld)
+    .venv/bin/python tools/train_detector.py --finetune DATASET --steps 1500 --out DIR   # your labelled frames
+
+``--finetune DATASET`` (YOLO layout: DATASET/images/*.jpg|png, DATASET/labels/*.txt, class 0 = gate, an
+empty label file = a gate-free frame) starts from the shipped model (or ``--init-onnx``/``--resume``) and
+mixes your frames (half of each batch, flipped and colour-jittered) with rendered real-world frames so the
+detector keeps what it knew. Check the result with ``companion perception eval`` on frames you did NOT
+train on before you configure it (``perception.model``).
 
 Output (``--out``, default perception/models/): gate_detector.onnx (opset 17, input
 ``images`` 1x3x320x320 BGR->RGB /255 letterboxed, output [1, 4+nc, N] = cx, cy, w, h in input
@@ -30,6 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from perception.detector import letterbox  # noqa: E402  (the detector's own: train and inference agree)
+from perception.realworld import real_scene  # noqa: E402
 from perception.render import HELDOUT_STYLE, TRAIN_STYLE, PinholeCamera, random_scene  # noqa: E402
 
 INPUT = 320
@@ -150,14 +160,78 @@ def giou(a, b):
     return iou - (carea - union) / carea, iou
 
 
-def sample(rng: np.random.Generator, cam: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
-    img, box = random_scene(rng, cam, TRAIN_STYLE)
+def sample(rng: np.random.Generator, cam: PinholeCamera, world: str = "render") -> tuple[np.ndarray, np.ndarray]:
+    """One letterboxed training frame and its boxes (K, 4) xyxy in input pixels."""
+    if world == "real" or (world == "mixed" and rng.random() < 0.75):
+        img, xyxy = real_scene(rng)
+    else:
+        img, box = random_scene(rng, cam, TRAIN_STYLE)
+        xyxy = np.array([box.xyxy], np.float32) if box is not None else np.zeros((0, 4), np.float32)
+    return _letterbox_boxes(img, xyxy)
+
+
+def _letterbox_boxes(img: np.ndarray, xyxy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lb, s, dx, dy = letterbox(img, (INPUT, INPUT))
-    boxes = np.zeros((0, 4), np.float32)
-    if box is not None:
-        x0, y0, x1, y1 = box.xyxy
-        boxes = np.array([[x0 * s + dx, y0 * s + dy, x1 * s + dx, y1 * s + dy]], np.float32)
+    boxes = np.asarray(xyxy, np.float32).reshape(-1, 4) * s + np.array([dx, dy, dx, dy], np.float32)
     return lb, boxes
+
+
+def load_yolo_frames(dataset: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A YOLO-layout folder (images/, labels/) as letterboxed frames with boxes; the user's fine-tune data."""
+    from perception.evaluate import load_dataset
+
+    out = []
+    for item in load_dataset(dataset).frames:
+        img = cv2.imread(str(item.image), cv2.IMREAD_COLOR)
+        if img is None:
+            continue
+        out.append(_letterbox_boxes(img, item.boxes))
+    if not out:
+        raise SystemExit(f"train_detector: --finetune {dataset}: no readable labelled frames")
+    return out
+
+
+def load_onnx_weights(model, path: Path) -> None:
+    """Start from an exported model: its Conv+BN were fused on export, so the BN layers become identity."""
+    import onnx
+    import torch
+    from onnx import numpy_helper
+
+    graph = onnx.load(str(path)).graph
+    inits = {i.name: numpy_helper.to_array(i).copy() for i in graph.initializer}
+    nodes = [nd for nd in graph.node if nd.op_type == "Conv"]
+    # The exporter writes the convs in execution order: record that order from a forward pass.
+    order, names = [], {m: k for k, m in model.named_modules()}
+    hooks = [m.register_forward_hook(lambda mod, i, o: order.append(mod))
+             for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
+    model.eval()
+    with torch.no_grad():
+        model(torch.zeros(1, 3, INPUT, INPUT))
+    for h in hooks:
+        h.remove()
+    if len(order) != len(nodes):
+        raise SystemExit(f"train_detector: --init-onnx {path}: {len(nodes)} convs, the model has {len(order)}")
+    mods = dict(model.named_modules())
+    n = 0
+    with torch.no_grad():
+        for conv, node in zip(order, nodes, strict=True):
+            w = torch.from_numpy(inits[node.input[1]])
+            if tuple(w.shape) != tuple(conv.weight.shape):
+                raise SystemExit(f"train_detector: --init-onnx {path}: layer {names[conv]} shape {tuple(w.shape)}")
+            conv.weight.copy_(w)
+            bias = torch.from_numpy(inits[node.input[2]])
+            if conv.bias is not None:
+                conv.bias.copy_(bias)
+            else:
+                parent, idx = names[conv].rsplit(".", 1)
+                bn = mods[f"{parent}.{int(idx) + 1}"]
+                bn.weight.fill_(1.0)
+                bn.bias.copy_(bias)
+                bn.running_mean.zero_()
+                bn.running_var.fill_(1.0 - bn.eps)
+            n += 1
+    model.train()
+    print(f"initialised {n} conv layers from {path}", flush=True)
 
 
 def train(args: argparse.Namespace) -> None:
@@ -170,12 +244,23 @@ def train(args: argparse.Namespace) -> None:
     model = build_model()
     if args.resume:  # continue a run (e.g. a second budget); record it in the JSON
         model.load_state_dict(torch.load(args.resume))
+    elif args.init_onnx:
+        load_onnx_weights(model, args.init_onnx)
+    if args.init_onnx:
+        # The exported model had its BN folded into the convs: keep the (identity) BN statistics frozen so the
+        # warm start is the exported function; batch statistics would change it from the first step.
+        for mod in model.modules():
+            if isinstance(mod, torch.nn.BatchNorm2d):
+                mod.eval()
+    user = load_yolo_frames(args.finetune) if args.finetune else []
+    if user:
+        print(f"fine-tune: {len(user)} frames from {args.finetune}", flush=True)
     n_params = sum(p.numel() for p in model.parameters())
     print(f"params {n_params}", flush=True)
     n_anchor = sum((INPUT // s) ** 2 for s in STRIDES)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
     # Replay pool: rendering is the bottleneck, so each rendered frame is seen a few times (with flips).
-    pool: list[tuple[np.ndarray, np.ndarray]] = [sample(rng, cam) for _ in range(args.pool)]
+    pool: list[tuple[np.ndarray, np.ndarray]] = [sample(rng, cam, args.world) for _ in range(args.pool)]
     t0 = time.monotonic()
     # The schedule is in steps, so a run is reproducible from (--seed, --steps). With only --minutes, the
     # step count is fixed from the speed of the first PROBE steps and printed/recorded for reruns.
@@ -194,11 +279,11 @@ def train(args: argparse.Namespace) -> None:
         for g in opt.param_groups:
             g["lr"] = lr
         for _ in range(args.fresh):
-            pool[int(rng.integers(len(pool)))] = sample(rng, cam)
+            pool[int(rng.integers(len(pool)))] = sample(rng, cam, args.world)
         idx = rng.integers(len(pool), size=args.batch)
         imgs, boxes = [], []
-        for k in idx:
-            im, bx = pool[int(k)]
+        for j, k in enumerate(idx):
+            im, bx = user[int(rng.integers(len(user)))] if user and j % 2 == 0 else pool[int(k)]
             if rng.random() < 0.5:  # horizontal flip
                 im = im[:, ::-1]
                 bx = bx.copy()
@@ -266,7 +351,12 @@ def write_model(model, args: argparse.Namespace, total: int, step: int, minutes:
             "command": f"tools/train_detector.py --seed {args.seed} --steps {total} --lr {args.lr}"
                        + f" --threads {args.threads}" + (" --hue" if args.hue else "")
                        + (f" --resume {args.resume}" if args.resume else "")
+                       + (f" --world {args.world}" if args.world != "render" else "")
+                       + (f" --init-onnx {args.init_onnx}" if args.init_onnx else "")
+                       + (f" --finetune {args.finetune}" if args.finetune else "")
                        + (f" --stop-at {step}" if step < total else ""),
+            "world": args.world, "finetune": str(args.finetune) if args.finetune else None,
+            "init_onnx": str(args.init_onnx) if args.init_onnx else None,
             "augment": "horizontal flip, desaturation towards grey (p 0.5)"
                        + (", hue rotation (p 0.5)" if args.hue else ""),
             "seed": args.seed, "schedule_steps": total, "steps": step, "minutes": minutes,
@@ -347,11 +437,20 @@ def main() -> int:
     p.add_argument("--eval-frames", type=int, default=400)
     p.add_argument("--eval-only", action="store_true")
     p.add_argument("--resume", type=Path, default=None, help="start from this state dict (.pt)")
+    p.add_argument("--world", choices=("render", "real", "mixed"), default="render",
+                   help="training frames: perception.render (the stage-1/2 model), perception.realworld, or 3:1 mixed")
+    p.add_argument("--init-onnx", type=Path, default=None, help="start from this exported model (.onnx)")
+    p.add_argument("--finetune", type=Path, default=None,
+                   help="YOLO-layout DATASET of your own labelled frames: half of each batch (see above)")
     p.add_argument("--stop-at", type=int, default=0, help="stop after this many steps of the --steps schedule")
     p.add_argument("--export-checkpoint", type=Path, default=None,
                    help="export this .pt (from a run given by --seed/--steps/--stop-at) instead of training")
     args = p.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.finetune and not (args.resume or args.init_onnx):
+        args.init_onnx = ROOT / "perception" / "models" / "gate_detector.onnx"  # start from the shipped model
+    if args.finetune and args.world == "render":
+        args.world = "mixed"  # the user's frames + real-world and rendered frames, so nothing is forgotten
     if args.export_checkpoint:  # a checkpoint of a run (--seed, --steps, --stop-at say which): export only
         import torch
 

@@ -35,6 +35,7 @@ from companion.controller import ControlOutput, PNController
 from companion.engagement import Decision, Engagement, EngagementParams, Phase
 from companion.flightlog import FlightLog
 from companion.frames import euler_ned_deg_from_R
+from companion.hover import HoverThrustEstimator, use_hover_thrust
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -115,6 +116,9 @@ class FlightApp:
         self._connected = False
         self._last_out: ControlOutput | None = None
         self._deadman: LoopDeadman | None = None
+        self._hover: HoverThrustEstimator | None = None  # hover.estimate (companion/hover.py)
+        self._hover_u: float | None = None
+        self._hover_logged: float | None = None
 
     # ------------------------------------------------------------------------------ public
     def trip(self, reason: Reason, detail: str) -> None:
@@ -310,6 +314,7 @@ class FlightApp:
                 reset = getattr(self.perception, "reset", None)
                 if reset is not None:
                     reset()  # the tracker must not hold on to (or coast) the gate we just passed
+        self._hover_update(d.setpoint.thrust)
         if first:
             # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
             # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
@@ -342,6 +347,26 @@ class FlightApp:
         time: the box must be rotated to the world with the attitude the camera had when it saw it."""
         q = self.link.attitude_history.at(t)
         return q if q is not None else self.link.attitude.q_wxyz
+
+    def _hover_update(self, thrust: float) -> None:
+        """hover.estimate: the IMU's specific force against the thrust we commanded since the last setpoint
+        (companion/hover.py); the controller flies with the estimate from then on."""
+        if not self.cfg.hover.estimate:
+            return
+        if self._hover is None:
+            self._hover = HoverThrustEstimator(self.ctrl.p.hover_thrust, self.cfg.hover)
+        imu, h = self.link.imu, self._hover
+        if imu is not None and self._hover_u is not None:
+            e = h.update(imu.t_rx, self._hover_u, -float(imu.accel_frd[2]))  # FRD: the thrust axis is -z
+            if e is not None:
+                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight)
+                self.log.write("hover", u_cmd=self._hover_u, a_up=-float(imu.accel_frd[2]),
+                               hover_thrust=e.hover_thrust, std=e.std, samples=e.samples)
+                if self._hover_logged is None or abs(e.hover_thrust - self._hover_logged) > 0.01:
+                    self._hover_logged = e.hover_thrust
+                    self.log.event(f"hover thrust {e.hover_thrust:.3f} estimated from the IMU ({e.samples} samples, "
+                                   f"std {e.std:.3f}; started from {h.hover0:.3f})")
+        self._hover_u = thrust
 
     async def _land_normally(self, reason: Reason, why: str, via: State) -> None:
         pilot = self.cfg.app.start == "pilot"  # the pilot took off, the pilot lands

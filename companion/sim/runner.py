@@ -29,6 +29,7 @@ from companion.app.states import Reason
 from companion.configbase import deep_merge
 from companion.engagement import Engagement, Phase
 from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
+from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.sim.camera import GeometricCamera
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
@@ -181,6 +182,14 @@ _END_REASONS = {Reason.OK: "handback", Reason.NO_TARGET: "no_target", Reason.TAR
 POST_CROSSING_S = 1.5  # s flown after the crossing at most while the engagement is still before RECOVER
 
 
+def _hover_estimator(cfg: Config, spec: RunSpec, ctrl: Any, ss: np.random.SeedSequence) -> tuple | None:
+    """(estimator, its own IMU) when hover.estimate is on; its own noise stream leaves the others' unchanged."""
+    if not cfg.hover.estimate or spec.controller == "baseline":
+        return None
+    return (HoverThrustEstimator(ctrl.p.hover_thrust, cfg.hover),
+            Sensors(cfg.sim.sensors, np.random.default_rng(ss.spawn(1)[0])))
+
+
 def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     """Fly one run to its end; deterministic for spec.seed.
 
@@ -221,6 +230,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)
     eng = Engagement.from_config(cfg, steer) if engaged else None
+    hover = _hover_estimator(cfg, spec, steer.ctrl, ss)
     scorer = PlaneCrossingScorer(gate.normal)
 
     dt = 1.0 / cfg.camera.rate
@@ -322,6 +332,11 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.accel.append(sensors.imu(quad.specific_force_body(), s.omega).accel)
             traj.baro.append(sensors.baro_altitude(float(s.p[2])))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+        if hover is not None:  # in-flight hover-thrust estimate (companion/hover.py), hover.estimate=true
+            est, imu = hover
+            acc = imu.imu(quad.specific_force_body(), quad.state.omega).accel  # FLU: z is the thrust axis
+            if est.update(t + dt, thrust_cmd, float(acc[2])) is not None:
+                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight)
         k += 1
     if crossing is not None:
         outcome = crossing  # ground truth scores the run, whatever the engagement did after
