@@ -232,7 +232,8 @@ class FlightApp:
         if hover is not None and 0.05 < hover < 0.95:
             self.ctrl = self.ctrl.with_hover_thrust(hover, cfg.airframe.thrust_to_weight)
             self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
-        self._baro0 = self._baro_raw()  # on the ground: the altitude floor is above this
+        ref = cfg.safety.altitude_reference  # an app started in the air is told where the ground is
+        self._baro0 = self._baro_raw() if ref is None else ref  # on the ground: the altitude floor is above this
         if cfg.app.start == "takeoff":
             self.sm.go(State.ARM, "preflight checks passed")
             await self.link.arm()

@@ -165,3 +165,35 @@ def test_client_commands_made_executable(tmp_path: Path) -> None:
     assert os.path.realpath(out / "px4-param") == os.path.realpath(b / "px4")
     assert (out / "px4-alias.sh").read_text() == "alias param='px4-param'\n"
     assert client_bin(tmp_path) == out  # made once
+
+
+def test_px4_run_score_from_a_flight_log(tmp_path: Path) -> None:
+    """The PX4 table's per-run score, from a flight log written by the real FlightLog: a straight pass 0.3 m
+    beside a stationary gate 20 m ahead, engaged at t = 1 s, at 10 m/s."""
+    from companion.flightlog import FlightLog
+    from companion.px4sitl.evaluate import score_flight
+
+    t_now = [0.0]
+    log = FlightLog(tmp_path / "f", {}, clock=lambda: t_now[0])
+    log.state("ACQUIRE", "ENGAGE", "stable track", t=1.0)
+    for k in range(0, 41):
+        t = 1.0 + 0.1 * k
+        t_now[0] = t
+        n = 10.0 * (t - 1.0)
+        log.write("truth", t=t, n=n, e=0.3, d=-10.0, vn=10.0, ve=0.0, vd=0.0)
+        log.write("gate", t=t, k=1, gate_n=20.0, gate_e=0.0, gate_d=-10.0, normal_n=-1.0, normal_e=0.0,
+                  normal_d=0.0, radius=1.0, visible=True)
+        log.write("setpoints", t=t, t_frame=t, state="ENGAGE", ctrl_mode="pn",
+                  roll_deg=10.0 * math.sin(2 * math.pi * t), pitch_deg=-20.0, yaw_deg=0.0, thrust=0.6, latency_ms=5.0)
+    log.close({"outcome": "SAFE_HOLD", "reason": "OK", "gates_passed": 1,
+               "frame_to_setpoint_ms": {"p50": 5.0, "p95": 6.0, "n": 41}})
+    r = score_flight(tmp_path / "f", [0.25, 0.5, 1.0])
+    assert r["crossed"]
+    assert abs(r["t_gate_s"] - 2.0) < 1e-6  # 20 m at 10 m/s after ENGAGE
+    assert abs(r["d_center_m"] - 0.3) < 1e-6
+    assert r["success"] == {"0.25": False, "0.5": True, "1.0": True}
+    assert r["failure"]["0.25"] == "missed"
+    assert abs(r["top_speed_mps"] - 10.0) < 1e-9
+    assert abs(r["roll_osc_amp_deg"] - 10.0) < 1.5 and abs(r["roll_osc_freq_hz"] - 1.0) < 0.15
+    assert abs(r["max_tilt_deg"] - float(np.degrees(np.arccos(np.cos(np.radians(10)) * np.cos(np.radians(20)))))) < 0.5
+    assert r["latency_p95_ms"] == 6.0
