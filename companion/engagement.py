@@ -73,7 +73,8 @@ PassStatus = Literal["engaged", "confirmed", "not_confirmed", "pulled_up"]
 class Steering(Protocol):
     """What the engagement needs of a controller: ``PNController`` (or an ablation wrapped like it)."""
 
-    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray) -> object: ...
+    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray,
+             accel_frd: np.ndarray | None = None, t_now: float | None = None) -> object: ...
 
     def reset(self) -> None: ...
 
@@ -164,6 +165,7 @@ class Engagement:
     _peak: float = 0.0  # largest box side during the pass, px
     _gone: int = 0  # frames of "gate behind" evidence
     _old_gone: bool = True  # the last engaged gate has left the view (a track now is a new gate)
+    _imu: tuple[np.ndarray | None, float | None] = (None, None)  # this step's accelerometer and time now
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -176,9 +178,13 @@ class Engagement:
 
     # -- the step ------------------------------------------------------------------------------------
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray, baro_rel_alt: float | None,
-             events: Iterable[LinkEvent] = ()) -> Decision:
+             events: Iterable[LinkEvent] = (), accel_frd: np.ndarray | None = None,
+             t_now: float | None = None) -> Decision:
         """One frame captured at ``t`` (s, any monotonic clock): its box (or None), the attitude estimate at
-        ``t`` (NED/FRD wxyz), the barometric altitude above take-off (m, None if unknown), link/pilot events."""
+        ``t`` (NED/FRD wxyz), the barometric altitude above take-off (m, None if unknown), link/pilot events,
+        and for the controller the accelerometer (body FRD specific force, m/s^2) and the time now (the
+        frame's age), when the caller has them."""
+        self._imu = (accel_frd, t_now)
         if self._t0 is None:
             self._t0 = self._t_phase = t
         p = self.params
@@ -225,14 +231,14 @@ class Engagement:
         self._los_enu = None
         self.passes.append(GatePass(len(self.passes) + 1, t))
         self._go(Phase.ENGAGE, t)
-        out = self.controller.step(t, box, q)
+        out = self.controller.step(t, box, q, *self._imu)
         self._note_los(out)
         return Decision(t, Phase.ENGAGE, out.setpoint, out, why, prev,
                         events=(f"gate {self.passes[-1].gate} engaged",))
 
     def _engage_step(self, t: float, box: BoundingBox | None, valid: bool, q: np.ndarray,
                      baro: float | None) -> Decision:
-        out = self.controller.step(t, box, q)
+        out = self.controller.step(t, box, q, *self._imu)
         if getattr(out, "mode", "") == "pn":
             self._last_valid = t
         self._note_los(out)

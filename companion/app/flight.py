@@ -284,7 +284,9 @@ class FlightApp:
             valid = box is not None and box.is_valid(self.width, self.height)
             self.stats.frames += 1
             self._log_detection(frame, box, valid)
-            d = eng.step(frame.t, box, self._attitude_at(frame.t), self._baro_rel())
+            imu = self.link.imu  # the newest accelerometer sample (50 Hz) for the controller's closing speed
+            d = eng.step(frame.t, box, self._attitude_at(frame.t), self._baro_rel(),
+                         accel_frd=imu.accel_frd if imu is not None else None, t_now=t_avail)
             if d.control is not None:
                 self._last_out = d.control
             for ev in d.events:
