@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from companion.app import link as linkmod
+from companion.app import preflight
 from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
 from companion.app.notify import Notifier
@@ -88,6 +89,7 @@ class FlightApp:
         status_line: bool = False,
         perception_in_thread: bool = False,
         judge: GateJudge | None = None,
+        confirm: preflight.Confirm | None = None,
     ) -> None:
         self.cfg = cfg
         self.link = link
@@ -100,6 +102,7 @@ class FlightApp:
         self.perception_in_thread = perception_in_thread
         self.judge = judge  # ground truth (simulators only): scores the gates, never steers
         self._verdict: str | None = None  # the normal end's outcome line (companion/app/outcome.py)
+        self.confirm = confirm  # asks the operator to confirm the pre-flight summary; None: do not ask
         self.clock = time.monotonic
         # With a live status line, a state message first clears the line it would otherwise append to.
         self._tty = bool(stderr is not None and getattr(stderr, "isatty", lambda: False)())
@@ -234,6 +237,10 @@ class FlightApp:
             self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
         ref = cfg.safety.altitude_reference  # an app started in the air is told where the ground is
         self._baro0 = self._baro_raw() if ref is None else ref  # on the ground: the altitude floor is above this
+        not_confirmed = await preflight.run(self, self.confirm)  # summary + operator's yes before arming
+        self._check_fault()
+        if not_confirmed is not None:
+            raise _Tripped(Abort(Reason.NOT_CONFIRMED, not_confirmed))
         if cfg.app.start == "takeoff":
             self.sm.go(State.ARM, "preflight checks passed")
             await self.link.arm()

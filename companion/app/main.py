@@ -52,6 +52,8 @@ def register(subparsers: Any) -> None:
     from companion.app.record import add_record_arguments
 
     add_record_arguments(p)
+    p.add_argument("--yes", "-y", action="store_true",
+                   help="do not ask to confirm the pre-flight summary before arming (it is still printed and logged)")
     p.add_argument("--shadow", action="store_true",
                    help="shadow mode: the whole pipeline beside the pilot; setpoints logged and plotted, never sent "
                         "(no arming, no mode change, no offboard)")
@@ -104,9 +106,12 @@ def _cmd_fly(args: argparse.Namespace) -> int:
                                              record_kw=record_kwargs(args)))
         print(f"companion: shadow log {folder}", file=sys.stderr)
         return code
+    from companion.app.preflight import stdin_confirm
+
     try:
         reason, folder, _ = run_flight_process(fly(cfg, status_line=args.status, plot=not args.no_plot,
-                                                   record=args.record, record_kw=record_kwargs(args)))
+                                                   record=args.record, record_kw=record_kwargs(args),
+                                                   confirm=None if args.yes else stdin_confirm))
     except StartRefused as e:
         print(f"companion fly: {e}", file=sys.stderr)
         return 2
@@ -240,6 +245,7 @@ async def fly(
     alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
     record: str | Path | None = None,
     record_kw: dict[str, Any] | None = None,
+    confirm: Callable[[str], Awaitable[bool]] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
     """One flight, start to safe state. Returns (outcome, flight folder, summary).
 
@@ -256,7 +262,7 @@ async def fly(
     try:
         return await _fly_locked(cfg, status_line=status_line, plot=plot, stderr=stderr,
                                  handle_signals=handle_signals, alongside=alongside, record=record,
-                                 record_kw=record_kw)
+                                 record_kw=record_kw, confirm=confirm)
     finally:
         lock.release()
 
@@ -271,6 +277,7 @@ async def _fly_locked(
     alongside: Callable[[FlightApp], Awaitable[None]] | None,
     record: str | Path | None,
     record_kw: dict[str, Any] | None,
+    confirm: Callable[[str], Awaitable[bool]] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
     from companion.app.flight import FlightApp
     from companion.app.link import VehicleLink
@@ -303,7 +310,8 @@ async def _fly_locked(
             camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
                                      link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
-                        status_line=status_line, perception_in_thread=in_thread, judge=judge)
+                        status_line=status_line, perception_in_thread=in_thread, judge=judge,
+                        confirm=confirm)
         loop = asyncio.get_running_loop()
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
