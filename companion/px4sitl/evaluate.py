@@ -83,7 +83,8 @@ def score_flight(folder: Path, radii: list[float]) -> dict[str, Any]:
         osc = oscillation(sp["t"], sp["roll_deg"])
         tilt = max_tilt_deg(sp["roll_deg"], sp["pitch_deg"])
     reason = str(s.get("reason") or "killed").lower()
-    end = None if crossed else ("no_engage" if t_engage is None else reason)
+    # Not crossed although the app ended normally: it took a pass that the truth does not confirm.
+    end = None if crossed else ("no_engage" if t_engage is None else "no_crossing" if reason == "ok" else reason)
     lat = s.get("frame_to_setpoint_ms") or {}
     return {
         "crossed": crossed, "t_gate_s": (first.t - t_engage) if crossed else None, "d_center_m": d,
