@@ -78,12 +78,16 @@ class Reason(enum.IntEnum):
     EXCEPTION = 22
     SIGNAL = 23  # SIGTERM / SIGINT: orderly hand-over
     CAMERA_FAILED = 24
-    VEHICLE_BUSY = 25  # armed or in the air at start (start=takeoff): refused
-    UNSAFE_FAILSAFE = 26  # PX4's offboard-loss failsafe would not end in a safe mode: refused before arming
-    DISARMED = 27  # the vehicle was disarmed in flight by someone else
-    SETPOINT_INVALID = 28  # upstream produced a non-finite setpoint: nothing sent, handed over
-    TELEMETRY_INVALID = 29  # attitude/telemetry rejected (non-finite, out of range, spoofed) persistently
-    AUTOPILOT_MODE = 30  # PX4 changed the mode on its own (failsafe land, return, ...): not the pilot, not us
+    NOT_CONFIRMED = 25  # the operator did not confirm the pre-flight summary (companion/app/preflight.py)
+    VEHICLE_BUSY = 26  # armed or in the air at start (start=takeoff): refused
+    UNSAFE_FAILSAFE = 27  # PX4's offboard-loss failsafe would not end in a safe mode: refused before arming
+    DISARMED = 28  # the vehicle was disarmed in flight by someone else
+    SETPOINT_INVALID = 29  # upstream produced a non-finite setpoint: nothing sent, handed over
+    # The flight ended normally but not as claimed (companion/app/outcome.py):
+    GATE_MISSED = 30  # ground truth: a gate plane crossed outside the radius, or fewer gates than passes claimed
+    PASS_NOT_CONFIRMED = 31  # no ground truth: a pass ended on its timeout, without evidence the gate is behind
+    TELEMETRY_INVALID = 32  # attitude/telemetry rejected (non-finite, out of range, spoofed) persistently
+    AUTOPILOT_MODE = 33  # PX4 changed the mode on its own (failsafe land, return, ...): not the pilot, not us
 
 
 _NORMAL: dict[State, frozenset[State]] = {

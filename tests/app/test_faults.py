@@ -293,7 +293,7 @@ def test_forced_disarm_during_engage_is_noticed(sim, tmp_path):
                                    _in_state("ENGAGE", lambda app: sim.force_disarm(), 0.8))
     f, end, why = _end(folder)
     assert reason is Reason.DISARMED and end == "DISARMED", why
-    assert f.summary["exit_code"] == 27 and "vehicle disarmed during ENGAGE" in why
+    assert f.summary["exit_code"] == 28 and "vehicle disarmed during ENGAGE" in why
     assert "PX4 holds" not in why
     t_kill = next(t for t, e in sim.events if e == "disarm:force")
     # Setpoints stop: no setpoint reaches PX4 more than 2 s (heartbeat + monitor) after the disarm.
@@ -339,7 +339,7 @@ def test_start_while_airborne_is_refused(tmp_path):
         reason, folder, _ = run_flight(make_config(tmp_path, sim.url_for_mavsdk))
         f, end, why = _end(folder)
         assert reason is Reason.VEHICLE_BUSY and end == "REFUSED", why
-        assert f.summary["exit_code"] == 25
+        assert f.summary["exit_code"] == 26
         assert "vehicle found armed, landed state IN_AIR, mode HOLD: refusing to arm or take off" in why
         assert f.state_path() == ["CONNECT", "PREFLIGHT", "REFUSED"]
         flight_cmds = ("command:400", "command:22", "command:176", "command:21")  # arm, take-off, mode, land
@@ -355,7 +355,7 @@ def test_unsafe_offboard_loss_failsafe_is_refused_before_arming(tmp_path):
         reason, folder, _ = run_flight(make_config(tmp_path, sim.url_for_mavsdk))
         f, end, why = _end(folder)
         assert reason is Reason.UNSAFE_FAILSAFE and end == "ABORT_NOT_ARMED", why
-        assert f.summary["exit_code"] == 26
+        assert f.summary["exit_code"] == 27
         assert "COM_OBL_RC_ACT = 7 (Disarm) is not a safe end" in why
         assert not sim.armed and "arm" not in [e for _, e in sim.events]
         assert any("PX4 failsafe if the app dies" in str(t) for t in f["events"]["text"])
@@ -426,7 +426,7 @@ def test_nan_attitude_in_flight_is_a_named_abort(sim, tmp_path):
     sim.corrupt_attitude(False)
     f, end, why = _end(folder)
     assert reason is Reason.TELEMETRY_INVALID and end == "SAFE_HOLD", why
-    assert f.summary["exit_code"] == 29 and "attitude samples rejected within 1 s" in why
+    assert f.summary["exit_code"] == 32 and "attitude samples rejected within 1 s" in why
     assert "non-finite quaternion" in why
     assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_HOLD"]
     tel = f["telemetry"]
