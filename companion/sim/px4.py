@@ -1046,16 +1046,6 @@ def _stdin_command(sim: SimPX4, line: str) -> str:
     return "OK"
 
 
-def _port_arg(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"{v} is not a UDP port (0-65535)")
-    return v
-
-
 def main(argv: list[str] | None = None) -> int:
     from companion.config import add_config_arguments, config_from_args
     from companion.configbase import ConfigError
@@ -1064,8 +1054,8 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m companion.sim.px4",
         description="Simulated PX4 on 127.0.0.1 (MAVLink 2/UDP). Prints 'PORT <n>'; " + _SWITCH_HELP,
     )
-    ap.add_argument("--port", type=_port_arg, default=0, help="UDP port on 127.0.0.1 (0: a free one)")
-    ap.add_argument("--remote-port", type=_port_arg, default=0, metavar="PORT",
+    ap.add_argument("--port", type=int, default=0, help="UDP port on 127.0.0.1 (0: a free one)")
+    ap.add_argument("--remote-port", type=int, default=0, metavar="PORT",
                     help="send to 127.0.0.1:PORT, where mavsdk listens with udpin:// (PX4 SITL uses 14540; "
                          "0: a free one, printed as 'REMOTE <n>')")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
