@@ -35,7 +35,11 @@ def register(subparsers: Any) -> None:
     codes = "\n".join(f"  {r.value:3d}  {r.name}" for r in Reason)
     p = subparsers.add_parser("fly", help="fly through gates: connect, take off, engage, pass, land (logs the flight)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                              epilog=f"exit codes (the flight's outcome):\n{codes}")
+                              epilog=f"exit codes (the flight's outcome):\n{codes}\n"
+                              "GATE_MISSED: ground truth (simulated PX4, PX4 SITL) says a gate's plane was crossed\n"
+                              "  outside its radius, or fewer gates were flown through than passes claimed.\n"
+                              "PASS_NOT_CONFIRMED: no ground truth (the field) and a pass ended on app.pass_timeout\n"
+                              "  without evidence that the gate went behind.")
     add_config_arguments(p)
     p.add_argument("--url", help="mavsdk connection URL (overrides link.url)")
     p.add_argument("--synthetic", action="store_true",
@@ -187,19 +191,20 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
-    """(camera source, perception, run perception in a thread) for the configured camera.
+def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+    """(camera source, perception, run perception in a thread) for the configured camera; the synthetic
+    camera's gates go to the log and to ``judge`` (companion/app/outcome.py, ground truth).
 
     Every source is wrapped in CheckedCamera: each frame is checked for plausibility (size, type,
     timestamps, frozen content) before perception sees it.
     """
     from companion.app.camera import CheckedCamera
 
-    cam, perception, in_thread = _build_camera(cfg, link, log)
+    cam, perception, in_thread = _build_camera(cfg, link, log, judge)
     return CheckedCamera.from_config(cam, cfg), perception, in_thread
 
 
-def _build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
+def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
     from companion.app.flight import gate_logger
     from companion.app.synthcam import SyntheticCamera, VehiclePose
 
@@ -218,7 +223,7 @@ def _build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
                 return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
             return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
 
-        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
+        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log, judge))
         if cam.render == "geometric":
             return cam, cam.perception(), False
         from perception.pipeline import Pipeline
@@ -277,6 +282,7 @@ async def _fly_locked(
     from companion.app.flight import FlightApp
     from companion.app.link import VehicleLink
     from companion.app.notify import Notifier
+    from companion.app.outcome import GateJudge
     from companion.app.states import Reason
     from companion.config import config_as_dict
     from companion.flightlog import FlightLog, FlightLogError
@@ -296,14 +302,16 @@ async def _fly_locked(
         from companion.px4sitl.truth import attach_truth
 
         truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
-        camera, perception, in_thread = build_camera(cfg, link, log)
+        judge = GateJudge()  # ground truth, where a simulator provides it: scores the gates, never steers
+        camera, perception, in_thread = build_camera(cfg, link, log, judge)
         if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
 
             camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
                                      link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
-                        status_line=status_line, perception_in_thread=in_thread, confirm=confirm)
+                        status_line=status_line, perception_in_thread=in_thread, judge=judge,
+                        confirm=confirm)
         loop = asyncio.get_running_loop()
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
