@@ -3,10 +3,12 @@
 Public API (names are stable; the state machine and its tests rely on them)::
 
     link = VehicleLink.from_config(cfg, on_event=None)       # or VehicleLink(cfg.link, ...)
-    await link.connect(url=None, timeout=None)                 # ConnectFailed
+    await link.connect(url=None, timeout=None)                 # ConnectFailed, WrongAutopilot (link.system_id)
     await link.wait_healthy(timeout=None)                      # NotHealthy
     await link.hover_thrust(timeout=None) -> float             # MPC_THR_HOVER, else config (never raises)
     await link.read_param(name, timeout=None) -> float         # CommandTimeout, CommandDenied
+    await link.read_param_int(name, timeout=None) -> int
+    await link.failsafe_params(timeout=None) -> {name: value|None}   # companion/app/failsafe.py
     await link.arm(timeout=None)                               # ArmDenied, CommandTimeout
     await link.takeoff(altitude_m, timeout=None)               # TakeoffFailed, CommandTimeout (waits for HOLD)
     await link.start_offboard(first_setpoint, timeout=None)    # OffboardDenied, CommandTimeout
@@ -14,7 +16,8 @@ Public API (names are stable; the state machine and its tests rely on them)::
     await link.stop_offboard(timeout=None)                     # -> HOLD; CommandDenied, CommandTimeout
     await link.hold(timeout=None); await link.land(timeout=None)
     await link.wait_landed_and_disarm(timeout=None)            # CommandTimeout
-    await link.wait_mode(mode, timeout)                        # CommandTimeout, LinkLost
+    await link.wait_mode(mode, timeout, after=None)            # CommandTimeout, LinkLost; after: a mode_reports
+                                                               # count (only a later heartbeat confirms)
     await link.wait_link_ok(timeout)                           # LinkLost (telemetry back after a loss)
     await link.close()                                         # safe teardown; also ``async with``
     Telemetry ("latest value" caches, None until first received):
@@ -27,14 +30,22 @@ Public API (names are stable; the state machine and its tests rely on them)::
     link.truth_for_log -> TruthForLog | None  (position/velocity NED: ONLY for the flight log)
     link.status_text -> str | None (last STATUSTEXT), link.hover_thrust_source ("autopilot"|"config")
     link.events -> list[(t_monotonic, kind, detail)]; on_event(kind, detail) is called for each
+    link.px4_events -> decoded PX4 events (companion/app/px4events.py); link.mode_reports -> heartbeats seen
 
 Exceptions: every one derives ``LinkError`` and carries a one-line message saying what failed and
 where: ConnectFailed, NotHealthy, ArmDenied, TakeoffFailed, OffboardDenied, OffboardLost,
 CommandDenied, CommandTimeout, LinkLost.
 
 Setpoints: anything with ``roll_deg, pitch_deg, yaw_deg`` (NED/FRD, absolute yaw) and ``thrust``
-(0..1, e.g. ``companion.guidance.Setpoint``); non-finite values are refused, thrust is clamped to
-``[thrust_min, 1]`` (never 0). While offboard is active the link resends the latest setpoint at
+(0..1, e.g. ``companion.guidance.Setpoint``), through the last-line envelope (companion/app/envelope.py):
+non-finite values raise SetpointRejected (nothing sent), the tilt is clamped to ``airframe.max_tilt`` and
+the thrust to ``[thrust_min, 1]`` (never 0), each clamp an ``envelope`` event.
+
+Exposure: URLs that make mavsdk listen on every interface are refused unless
+``link.allow_all_interfaces``; only ``link.system_id`` is flown; the attitude is read raw and only from
+``link.component_id``, and impossible samples (non-finite, non-unit, time running back, tilt jumps) are
+rejected with ``telemetry_rejected`` events, ``telemetry_invalid`` when they persist. PX4 events (EVENT)
+are decoded and emitted as ``px4_event``. While offboard is active the link resends the latest setpoint at
 ``link.setpoint_rate`` and runs a watchdog: no fresh ``set_setpoint`` for
 ``safety.perception_stall_timeout`` -> offboard is stopped (PX4 -> HOLD). This matters because
 MAVSDK itself resends the last setpoint at ~20 Hz for as long as the process lives, so PX4's own

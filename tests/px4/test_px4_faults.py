@@ -66,8 +66,6 @@ def test_sigkill_mid_engagement_px4_failsafe_and_log_intact(px4: PX4Sitl, log_di
     assert set(f["setpoints"]["state"]) >= {"ENGAGE"}
 
 
-@pytest.mark.xfail(reason="needs the app to command and confirm Hold when aborting in TAKEOFF (issue 8 part 5)",
-                   strict=False)
 def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: Path) -> None:
     proc = start_app(px4, log_dir, "app.takeoff_altitude=12")
     folder = flight_folder(log_dir)
@@ -86,8 +84,6 @@ def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: 
     assert h1 < 10.0
 
 
-@pytest.mark.xfail(reason="needs the app to refuse a start on an armed, airborne vehicle (issue 8 part 5)",
-                   strict=False)
 def test_start_while_airborne_is_refused(px4: PX4Sitl, log_dir: Path) -> None:
     px4.param_set("MIS_TAKEOFF_ALT", 4.0)
     px4.client("commander", "arm")
