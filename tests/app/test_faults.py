@@ -434,3 +434,16 @@ def test_nan_attitude_in_flight_is_a_named_abort(sim, tmp_path):
     sp = f["setpoints"]
     assert all(np.isfinite(sp[c]).all() for c in ("roll_deg", "pitch_deg", "yaw_deg", "thrust"))
     assert sim.mode == "HOLD"
+
+
+def test_abort_during_land_commands_and_confirms_hold(sim, tmp_path):
+    """SIGINT while the app lands (nothing to engage): Hold is commanded and seen before SAFE_HOLD is named."""
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.synthetic.lateral_offset=60", "app.acquire_timeout=1.0")
+    reason, folder, _ = run_flight(cfg, _in_state("LAND", lambda app: app.trip(Reason.SIGNAL, "SIGINT received"),
+                                                  1.5))
+    f, end, why = _end(folder)
+    assert reason is Reason.SIGNAL and end == "SAFE_HOLD", why
+    assert why == "SIGINT received; PX4 holds" and f.state_path()[-2:] == ["LAND", "SAFE_HOLD"]
+    ev = [e for _, e in sim.events]
+    assert "mode:HOLD:command" in ev[ev.index("mode:LAND:command"):]  # our Hold, after our LAND
+    assert sim.mode == "HOLD" and sim.armed and not sim.landed
