@@ -295,9 +295,9 @@ class FlightApp:
         (start=takeoff), and put one found disarmed in OFFBOARD (after an offboard-loss landing) in HOLD,
         without which PX4 1.15 refuses its pre-flight checks."""
         link = self.link
-        await link._wait_until(lambda: link.armed is not None and link.landed_state is not None
-                               and link.flight_mode is not None, self.cfg.link.mode_timeout + 2.0,
-                               "no heartbeat and landed state from the autopilot")
+        await link.wait_until(lambda: link.armed is not None and link.landed_state is not None
+                              and link.flight_mode is not None, self.cfg.link.mode_timeout + 2.0,
+                              "no heartbeat and landed state from the autopilot")
         self._check_fault()
         airborne = link.landed_state not in ("ON_GROUND", "UNKNOWN")
         if self.cfg.app.start == "takeoff" and (link.armed or airborne):

@@ -455,6 +455,10 @@ class VehicleLink:
                           f"landed {self._landed})")
             await asyncio.sleep(self.POLL)
 
+    async def wait_until(self, pred: Callable[[], bool], timeout: float, what: str) -> None:
+        """Until ``pred()`` holds on the link's telemetry (CommandTimeout naming ``what``, LinkLost)."""
+        await self._wait_until(pred, timeout, what)
+
     async def wait_link_ok(self, timeout: float) -> None:
         """Wait until telemetry flows again after a loss (LinkLost at timeout)."""
         deadline = time.monotonic() + timeout

@@ -447,3 +447,31 @@ def test_abort_during_land_commands_and_confirms_hold(sim, tmp_path):
     ev = [e for _, e in sim.events]
     assert "mode:HOLD:command" in ev[ev.index("mode:LAND:command"):]  # our Hold, after our LAND
     assert sim.mode == "HOLD" and sim.armed and not sim.landed
+
+
+def test_non_finite_setpoint_never_leaves_the_app(sim, tmp_path):
+    """Upstream computes a NaN roll mid-engagement: the link's envelope refuses it (nothing sent) and the
+    flight ends as SETPOINT_INVALID with a confirmed hand-over."""
+    import math
+    from types import SimpleNamespace
+
+    async def corrupt(app) -> None:
+        await wait_state(app, "ENGAGE")
+        await asyncio.sleep(0.5)
+        send = app.link.set_setpoint
+
+        async def nan_roll(sp) -> None:
+            await send(SimpleNamespace(roll_deg=math.nan, pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg,
+                                       thrust=sp.thrust))
+
+        app.link.set_setpoint = nan_roll
+
+    reason, folder, _ = run_flight(make_config(tmp_path, sim.url_for_mavsdk), corrupt)
+    f, end, why = _end(folder)
+    assert reason is Reason.SETPOINT_INVALID and end == "SAFE_HOLD", why
+    assert f.summary["exit_code"] == 29 and "non-finite value refused" in why
+    assert f.state_path()[-3:] == ["ENGAGE", "HANDBACK", "SAFE_HOLD"]
+    assert any("envelope" in str(t) and "refused" in str(t) for t in f["events"]["text"])
+    _, q, thrust = sim.last_setpoint()
+    assert np.isfinite(q).all() and math.isfinite(thrust)
+    assert sim.mode == "HOLD"
