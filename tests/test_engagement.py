@@ -269,3 +269,18 @@ def test_yawed_vehicle_passes_along_its_los():
     assert d.phase is Phase.PASS
     assert d.setpoint.yaw_deg == pytest.approx(90.0, abs=0.5) and abs(d.setpoint.roll_deg) < 1e-6
     assert (P_NED_ENU @ d.setpoint.R_ned_frd[:, 0])[0] == pytest.approx(1.0, abs=1e-3)  # ENU east
+
+
+def test_a_box_lost_when_nearly_close_starts_the_pass_and_one_lost_far_away_does_not():
+    # Far: a 40 px box (0.06 of the width, far below size_threshold / 2), then nothing: coast, then target lost.
+    r = engaged()
+    d = r.feed([None])[0]
+    assert d.phase is Phase.ENGAGE and d.control.mode == "coast"
+    # Near: a box of 0.3 of the width (> 0.45 / 2), then the detector loses the ring that fills the view.
+    r = engaged()
+    r.feed([box(0.3 * W)] * 3)
+    d = r.feed([None])[0]
+    assert d.phase is Phase.PASS and d.why.startswith("gate lost while close")
+    assert d.setpoint.R_ned_frd[2, 1] == pytest.approx(0.0, abs=1e-9)  # the straight pass, no roll about the LOS
+    end = r.until(Phase.RECOVER, None)
+    assert r.eng.passes[0].status == "confirmed" and end.why == "gate 1 passed (the gate left the view)"
