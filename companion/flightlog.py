@@ -259,7 +259,8 @@ class FlightLog:
         first = not self._failed
         self._failed[topic] = why
         if first:
-            self._say(f"companion: flight log write failed ({topic}.csv: {why}) at t={self.now():.2f} s: "
+            file = topic if "." in topic else f"{topic}.csv"
+            self._say(f"companion: flight log write failed ({file}: {why}) at t={self.now():.2f} s: "
                       "the flight goes on, the log is incomplete from here")
 
     def _say(self, line: str) -> None:
@@ -270,6 +271,18 @@ class FlightLog:
 
     def rows(self, topic: str) -> int:
         return self._topics[topic].rows
+
+    def write_json(self, name: str, data: Any) -> bool:
+        """An extra JSON file in the flight folder (e.g. preflight.json); like every log write, a failure
+        never raises into the flight: it marks the log incomplete and returns False."""
+        if self.closed:
+            return False
+        try:
+            _write_json(self.folder / name, data)
+            return True
+        except OSError as e:
+            self._fail(name, e)
+            return False
 
     def close(self, summary: Mapping[str, Any] | None = None) -> None:
         """Close every topic and write the final summary; never raises for a write error."""

@@ -369,7 +369,8 @@ class FlightApp:
         if imu is not None and self._hover_u is not None:
             e = h.update(imu.t_rx, self._hover_u, -float(imu.accel_frd[2]))  # FRD: the thrust axis is -z
             if e is not None:
-                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight)
+                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight,
+                                 getattr(self, "engagement", None))  # the pass and recovery too
                 self.log.write("hover", u_cmd=self._hover_u, a_up=-float(imu.accel_frd[2]),
                                hover_thrust=e.hover_thrust, std=e.std, samples=e.samples)
                 if self._hover_logged is None or abs(e.hover_thrust - self._hover_logged) > 0.01:

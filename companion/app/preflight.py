@@ -214,7 +214,7 @@ async def run(app: Any, confirm: Confirm | None) -> str | None:
     """Summary, log, confirmation. Returns None to go on, or the reason the operator did not confirm."""
     s = await gather(app)
     text = format_summary(s)
-    (app.log.folder / "preflight.json").write_text(json.dumps(s, indent=1, default=str) + "\n", encoding="utf-8")
+    app.log.write_json("preflight.json", json.loads(json.dumps(s, default=str)))  # never raises (a full disk)
     for line in text.splitlines()[1:-1]:
         app.log.event("preflight: " + " ".join(line.split()))
     will_arm = app.cfg.app.start == "takeoff"

@@ -30,7 +30,7 @@ APP_YAML = Path(__file__).resolve().parents[2] / "config" / "app.yaml"
 
 def fly_cmd(url: str, log_dir: Path, *overrides: str) -> list[str]:
     cmd = [sys.executable, "-m", "companion.cli", "fly", "--config", str(APP_YAML), "--url", url,
-           "--log-dir", str(log_dir), "--no-plot"]
+           "--log-dir", str(log_dir), "--no-plot", "--yes"]
     for o in (*BASE_OVERRIDES, *overrides):
         cmd += ["--set", o]
     return cmd
