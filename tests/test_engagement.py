@@ -277,7 +277,7 @@ def test_a_box_lost_when_nearly_close_starts_the_pass_and_one_lost_far_away_does
     d = r.feed([None])[0]
     assert d.phase is Phase.ENGAGE and d.control.mode == "coast"
     # Near: a box of 0.55 of the width (> size_threshold / near_factor), then the detector loses the ring.
-    assert 0.55 > CFG.app.size_threshold / 2
+    assert CFG.app.size_threshold / 2 < 0.55
     r = engaged()
     r.feed([box(0.55 * W)] * 3)
     d = r.feed([None])[0]
