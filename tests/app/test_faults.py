@@ -475,3 +475,33 @@ def test_non_finite_setpoint_never_leaves_the_app(sim, tmp_path):
     _, q, thrust = sim.last_setpoint()
     assert np.isfinite(q).all() and math.isfinite(thrust)
     assert sim.mode == "HOLD"
+
+
+def test_heartbeat_from_another_system_does_not_end_the_flight(sim, tmp_path):
+    """The issue's probe: a HEARTBEAT (POSCTL, armed) from another system during ENGAGE used to force
+    SAFE_PILOT. Now it changes nothing: the flight passes the gate and lands (exit 0)."""
+    import socket as _socket
+
+    from pymavlink.dialects.v20 import common as mavlink
+
+    async def spoof(app) -> None:
+        await wait_state(app, "ENGAGE")
+        sock = _socket.socket(_socket.AF_INET, _socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        mav = mavlink.MAVLink(None, srcSystem=2, srcComponent=1)
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        try:
+            for _ in range(40):
+                msg = mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, 3 << 16,
+                                           mavlink.MAV_STATE_ACTIVE, 3)
+                sock.sendto(msg.pack(mav), ("127.0.0.1", sim.remote_port))
+                mav.seq = (mav.seq + 1) % 256
+                await asyncio.sleep(0.05)
+        finally:
+            sock.close()
+
+    reason, folder, _ = run_flight(make_config(tmp_path, sim.url_for_mavsdk), spoof)
+    f, end, why = _end(folder)
+    assert reason is Reason.OK and end == "SAFE_LANDED", why
+    assert f.summary["exit_code"] == 0 and "PASS" in f.state_path()
+    assert "POSCTL" not in set(f["telemetry"]["flight_mode"])
