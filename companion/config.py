@@ -24,6 +24,7 @@ from companion.configbase import (
     Deg,
     Hertz,
     Kilograms,
+    Meters,
     MetersPerSecond,
     Number,
     Seconds,
@@ -33,6 +34,8 @@ from companion.configbase import (
     parse_override,
     read_yaml,
 )
+from companion.hover import HoverConfig
+from companion.px4sitl.config import PX4Config
 from companion.sim.config import SimConfig
 
 G = 9.81  # m/s^2, the paper's |g|
@@ -52,6 +55,9 @@ class AirframeConfig(Section):
     )
     max_tilt: Deg = Field(
         50.0, ge=10.0, le=80.0, description="flight envelope: largest commanded tilt of the thrust axis from vertical"
+    )
+    response_time: Seconds = Field(
+        0.14, ge=0.0, le=2.0, description="how long the attitude takes to follow a setpoint (PX4 SIH quad ~0.22 s)"
     )
 
     @property
@@ -132,6 +138,25 @@ class GuidanceConfig(Section):
         description="exact: bound the real angle between LOS and optical axis; paper: the paper's "
         "conservative cos(phi) cos(theta) >= cos(gamma_bar), which caps sideways acceleration at g tan(gamma_bar)",
     )
+    closing_speed: Literal["estimate", "fixed"] = Field(
+        "estimate", description="estimate: v_rel_bar lowered on evidence from the gate's image expansion (and the "
+        "IMU when given), companion/closing.py; fixed: the paper's constant v_rel_bar"
+    )
+    gate_radius: Meters = Field(
+        1.0, ge=0.0, le=50.0, description="radius of the ring the camera sees, m (0 = unknown: fixed v_rel_bar)"
+    )
+    closing_margin: Number = Field(
+        5.0, ge=1.0, le=10.0, description="relative-speed estimate x this in the PN law, before the caps v_rel_bar and "
+        "the lag cap (1.5 cut jitter most but lost moving gates on the SIH profile: docs/guidance.md)"
+    )
+    lag_margin: Number = Field(
+        1.0, ge=0.0, le=20.0, description="near the gate the PN gain is capped so its loop gain N / t_go stays below "
+        "1 / (this x the loop lag: airframe.response_time + the LOS filters); 0 = off"
+    )
+    drag_compensation: Number = Field(
+        1.0, ge=0.0, le=1.5, description="fraction of the drag normal to the LOS (from the accelerometer, when the "
+        "caller gives it) cancelled in the PN demand; 0 = the paper (drag assumed along the LOS)"
+    )
 
 
 class LosFilterConfig(Section):
@@ -158,6 +183,8 @@ class Config(Section):
     app: AppConfig = AppConfig()
     log: LogConfig = LogConfig()
     sim: SimConfig = SimConfig()
+    hover: HoverConfig = HoverConfig()  # in-flight hover-thrust estimate (companion/hover.py)
+    px4: PX4Config = PX4Config()
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Config:

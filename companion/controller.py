@@ -1,14 +1,18 @@
 """The controller: ``(time, bounding box or None, attitude) -> setpoint``, and nothing else.
 
 It accepts no position and no velocity: its only inputs are the box (pixels), the
-attitude estimate (PX4's, from the IMU) and the frame time. That is the point of the
-paper (control without full state estimation), and ``step``'s signature is the proof.
+attitude estimate (PX4's, from the IMU), optionally the accelerometer's specific force, and the
+frame time. That is the point of the paper (control without full state estimation), and
+``step``'s signature is the proof.
 
 Data path of one frame, top to bottom:
   box centre (px) -> unit ray (intrinsics, distortion) -> body FRD (camera mount)
   -> world NED (attitude at capture) -> paper frame ENU -> LOS jump check -> LOS low-pass
   -> inertial LOS rate (lambda_dot, n) -> PN demand a_n -> closed-form thrust/attitude
   -> MAVSDK setpoint (NED/FRD degrees, normalised thrust).
+The closing speed in the PN law is ``guidance.v_rel_bar`` (``closing_speed: fixed``, the paper) or, by
+default, lowered from it on evidence by companion/closing.py: range from the box size and the
+configured gate radius, filtered with the accelerometer when it is given.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from companion import guidance
+from companion.closing import ClosingParams, ClosingSpeedEstimator
 from companion.frames import P_NED_ENU, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import GuidanceParams, Setpoint
 from perception.los import CameraModel, LosFilter
@@ -42,6 +47,7 @@ class ControlOutput:
     demand_scale: float  # fraction of a_n the solver could honour (1 = all)
     f_th: float  # commanded mass-normalised thrust, m/s^2
     rejected: str | None  # why this frame's box was not used, if it was not
+    v_rel: float = math.nan  # closing speed the PN law used, m/s (v_rel_bar, or the estimate)
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,6 +60,22 @@ class ControllerParams:
     max_dt: float  # s; a longer gap restarts the LOS filter
     rate_cutoff_hz: float = 0.0  # low-pass on the LOS rate vector; 0 = off
     jump_reacquire_frames: int = 3  # consecutive "jumps" that agree are a real re-acquisition
+    closing: ClosingParams | None = None  # None: the paper's fixed v_rel_bar
+    drag_compensation: float = 0.0  # fraction of the measured drag normal to the LOS added to the PN demand
+    drag_cutoff_hz: float = 2.0  # low-pass on the drag the accelerometer measures
+
+
+def closing_params(cfg: Config) -> ClosingParams | None:
+    """The closing-speed estimator's parameters, or None for the paper's fixed v_rel_bar."""
+    g = cfg.guidance
+    if g.closing_speed == "fixed" or g.gate_radius <= 0.0:
+        return None
+    # The PN loop's lag: the vehicle's attitude response plus our two first-order filters (1 / (2 pi f_c) each).
+    lag = cfg.airframe.response_time + 1.0 / (2.0 * math.pi * cfg.los_filter.cutoff)
+    if cfg.los_filter.rate_cutoff > 0.0:
+        lag += 1.0 / (2.0 * math.pi * cfg.los_filter.rate_cutoff)
+    return ClosingParams(gate_radius=g.gate_radius, v_rel_bar=g.v_rel_bar, margin=g.closing_margin,
+                         loop_lag=lag if g.lag_margin > 0.0 else 0.0, lag_margin=max(g.lag_margin, 1e-9))
 
 
 class PNController:
@@ -63,6 +85,7 @@ class PNController:
         self.p = params
         self.camera = camera
         self._filter = LosFilter(params.los_cutoff_hz, params.max_dt)
+        self._closing = ClosingSpeedEstimator(params.closing, camera) if params.closing is not None else None
         self.reset()
 
     @classmethod
@@ -88,6 +111,8 @@ class PNController:
             max_los_rate=cfg.los_filter.max_rate,
             max_dt=cfg.los_filter.max_dt,
             rate_cutoff_hz=cfg.los_filter.rate_cutoff,
+            closing=closing_params(cfg),
+            drag_compensation=cfg.guidance.drag_compensation,
         )
         return cls(cp, camera)
 
@@ -107,15 +132,27 @@ class PNController:
         self._t_last: float | None = None  # time of the last step, used or not
         self._jumps = 0
         self._w: np.ndarray | None = None  # filtered LOS rate vector lambda_dot * n (ENU)
+        self._lam = 0.0  # last LOS rate, rad/s
+        self._latency = 0.0  # age of the last frame when it reached us, s
+        self._drag: np.ndarray | None = None  # filtered aerodynamic acceleration (ENU), from the accelerometer
+        self._t_drag: float | None = None
+        if self._closing is not None:
+            self._closing.reset()
 
     @property
     def has_los(self) -> bool:
         return self._l_prev is not None
 
-    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray) -> ControlOutput:
-        """One control step for the frame captured at ``t`` (s), with the attitude at that time."""
+    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray,
+             accel_frd: np.ndarray | None = None, t_now: float | None = None) -> ControlOutput:
+        """One control step for the frame captured at ``t`` (s), with the attitude at that time and, if the
+        caller has them, the accelerometer's specific force then (body FRD, m/s^2: closing speed and drag) and
+        the current time on the same clock (``t_now - t`` is the frame's age: the gain allows for it)."""
         R_ned_frd = R_from_quat_wxyz(q_wxyz_ned_frd)
+        if t_now is not None and math.isfinite(t_now) and math.isfinite(t):
+            self._latency = max(0.0, t_now - t)
         rejected = self._check(t, box)
+        t_ok = math.isfinite(t) and (self._t_last is None or t > self._t_last)
         self._t_last = t if math.isfinite(t) else self._t_last
         if rejected is None:
             assert box is not None
@@ -123,8 +160,42 @@ class PNController:
             l_enu = P_NED_ENU @ l_ned
             rejected = self._jump(t, l_enu)
             if rejected is None:
+                self._closing_speed(t, box, R_ned_frd, accel_frd)
+                self._update_drag(t, R_ned_frd, accel_frd)
                 return self._pn(t, l_enu, R_ned_frd)
+        if t_ok:
+            self._closing_speed(t, None, R_ned_frd, accel_frd)
+            self._update_drag(t, R_ned_frd, accel_frd)
         return self._no_box(t, R_ned_frd, rejected)
+
+    def _update_drag(self, t: float, R_ned_frd: np.ndarray, accel_frd: np.ndarray | None) -> None:
+        """Aerodynamic acceleration from the accelerometer: thrust acts along body z only, so the body x/y
+        specific force is drag (the paper's f_aero / m), rotated to the world and low-passed."""
+        if accel_frd is None or self.p.drag_compensation <= 0.0:
+            return
+        ax, ay = float(accel_frd[0]), float(accel_frd[1])
+        if not (math.isfinite(ax) and math.isfinite(ay)):
+            return
+        d = P_NED_ENU @ (R_ned_frd[:, 0] * ax + R_ned_frd[:, 1] * ay)
+        if self._drag is None or self._t_drag is None or not (0.0 < t - self._t_drag <= self.p.max_dt):
+            self._drag = d
+        else:
+            beta = 1.0 - math.exp(-2.0 * math.pi * self.p.drag_cutoff_hz * (t - self._t_drag))
+            self._drag = self._drag + beta * (d - self._drag)
+        self._t_drag = t
+
+    def _closing_speed(self, t: float, box: BoundingBox | None, R_ned_frd: np.ndarray,
+                       accel_frd: np.ndarray | None) -> None:
+        est = self._closing
+        if est is None:
+            return
+        u = None
+        d = est.range
+        if accel_frd is not None and self._l_prev is not None and d is not None:
+            # Range acceleration explained by our own motion: -a . l + d lambda_dot^2 (gate assumed unaccelerated).
+            a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float) + np.array([0.0, 0.0, guidance.G])
+            u = -float((P_NED_ENU @ a_ned) @ self._l_prev) + d * self._lam * self._lam
+        est.update(t, box, u)
 
     # -- internals -------------------------------------------------------------------------
 
@@ -157,6 +228,8 @@ class PNController:
             self._filter.reset()
             self._l_prev = None
             self._w = None
+            if self._closing is not None:
+                self._closing.reset()
             return None
         return f"LOS jump ({math.degrees(angle):.1f} deg in {dt * 1e3:.0f} ms)"
 
@@ -165,12 +238,23 @@ class PNController:
         dt = t - self._t_prev if self._t_prev is not None else 0.0
         rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
         lambda_dot, n = self._smooth_rate(l_f, rate.lambda_dot * rate.n, dt)
+        self._lam = lambda_dot
         gp = self.p.guidance
-        a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, gp.v_rel_bar)
+        v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
+        a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, v_rel)
+        if self._drag is not None and self.p.drag_compensation > 0.0:
+            # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
+            # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
+            # accelerometer misses drag along the thrust axis, so the vertical normal part is not trusted.)
+            lx, ly, _ = l_f.tolist()
+            h = math.hypot(lx, ly)
+            if h > 1e-6:
+                y_pn = np.array([-ly / h, lx / h, 0.0])  # e_z x l, normalised: the PN frame's y axis
+                a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
         sol = guidance.solve(l_f, a_n, gp, y_ref=self._body_y_enu(R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, None)
+        return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, None, v_rel)
 
     def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
         """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies

@@ -490,6 +490,12 @@ def register(subparsers: Any) -> None:
     p.add_argument("--reward", choices=tuple(REWARDS), default="dt",
                    help="tune: dt = distance + time (c_t 10, c_d 3), d = distance only (c_d 5, c 3)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--autopilot", choices=("in-process", "px4"), default="in-process",
+                   help="px4: table1 in real time on PX4 SITL (SIH) with the complete app, one PX4 instance per "
+                   "--jobs (companion/px4sitl/evaluate.py)")
+    p.add_argument("--px4-dir", default=None, metavar="DIR", help="PX4 SITL build (default px4.sitl_dir, "
+                   "$PX4_SITL_DIR)")
+    p.add_argument("--motions", default=None, metavar="M1,M2", help="only these gate motions (--autopilot px4)")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_eval)
 
@@ -506,6 +512,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     if args.suite == "tune":
         return _cmd_tune(args, cfg, out_dir)
+    if args.autopilot == "px4":
+        from companion.px4sitl.evaluate import cmd_eval_px4
+
+        return cmd_eval_px4(args, cfg, out_dir)
     try:
         res = run_suite(args.suite, cfg, runs=args.runs, seed=args.seed, n_jobs=min(args.jobs, os.cpu_count() or 1),
                         progress=not args.no_progress, camera=args.camera, protocol=args.protocol)

@@ -57,6 +57,8 @@ TOPICS: dict[str, tuple[str, ...]] = {
     # Synthetic camera only: the virtual gate in view (centre, plane normal, radius), NED.
     # One row per gate per frame; k = gate number (1 = nearest at the start), visible = the one in view.
     "gate": ("t", "k", "gate_n", "gate_e", "gate_d", "normal_n", "normal_e", "normal_d", "radius", "visible"),
+    # hover.estimate: the hover-thrust estimate (companion/hover.py) and the sample that updated it.
+    "hover": ("t", "u_cmd", "a_up", "hover_thrust", "std", "samples"),
 }
 IMMEDIATE = frozenset({"states", "events"})  # rare and precious: straight to the OS
 

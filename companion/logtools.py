@@ -63,6 +63,7 @@ class LogSummary:
     frame_rate_hz: float | None = None  # measured from the frame times
     setpoints: int = 0
     shadow: bool = False  # setpoints were computed and logged, never sent
+    has_truth: bool = False  # truth and gate topics hold rows (simulated flights)
     latency_ms: dict[str, float | None] = field(default_factory=dict)
     hover_thrust: dict[str, Any] = field(default_factory=dict)
 
@@ -157,6 +158,7 @@ def summarise(folder: str | Path) -> LogSummary:
         states=state_spans(flight), gates=gates, frames=frames, dropped_frames=dropped, frame_rate_hz=measured,
         setpoints=len(sp) if sp is not None else 0, shadow=shadow, latency_ms=latency_stats(flight),
         hover_thrust=hover_info(flight),
+        has_truth=all(len(flight.tables.get(k, ())) > 0 for k in ("truth", "gate")),
     )
 
 
@@ -175,6 +177,8 @@ def format_summary(s: LogSummary) -> str:
         for i, g in enumerate(s.gates, 1):
             lines.append(f"  gate {i}: t = {g.t:.2f} s, {g.d_center:.2f} m from the centre "
                          f"({'through' if g.through else 'missed'}, radius {g.radius:.2f} m)")
+    elif s.has_truth:
+        lines.append("gates: no gate plane crossed")
     else:
         lines.append("gates: no truth in this log (distances need the truth and gate topics)")
     lines.append(f"frames: {s.frames} (dropped {s.dropped_frames}), measured rate {num(s.frame_rate_hz)} Hz; "

@@ -130,21 +130,24 @@ def _project_ned(model: Any, los_ned: np.ndarray, R_ned_frd: np.ndarray) -> tupl
 
 def replay(
     video: str | Path, cfg: Config, log: str | Path | None = None, out: str | Path | None = None,
-    t0: float = 0.0, progress: bool = True, max_frames: int = 0,
+    t0: float = 0.0, progress: bool = True, max_frames: int = 0, record: str | Path | None = None,
+    record_kw: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Run the replay; returns a summary (frames, boxes, output paths, pipeline stats)."""
     import cv2
     from tqdm import tqdm
 
+    from companion.app.record import Recorder, RecordingReader, is_recording
     from companion.controller import PNController
     from companion.frames import R_from_quat_wxyz
     from perception.los import CameraModel, los_world
     from perception.pipeline import Pipeline
 
     video = Path(video)
-    if not video.is_file():
+    recording = RecordingReader(video) if is_recording(video) else None  # a `--record` folder: frames + index
+    if recording is None and not video.is_file():
         raise ReplayError(f"{video}: video file not found")
-    cap = cv2.VideoCapture(str(video))
+    cap = recording if recording is not None else cv2.VideoCapture(str(video))
     if not cap.isOpened():
         raise ReplayError(f"{video}: cannot open as a video")
     fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
@@ -157,7 +160,10 @@ def replay(
             f"{video}: frames are {w}x{h} but camera.width x camera.height is "
             f"{cfg.camera.width}x{cfg.camera.height} (the intrinsics must match the video)"
         )
-    track = load_attitude(log) if log is not None else level_attitude()
+    track = load_attitude(log) if log is not None else None
+    if track is None and recording is not None:
+        track = recording.attitude()  # the attitude recorded with each frame
+    track = track or level_attitude()
     out_dir = Path(out) if out is not None else video.with_name(video.stem + "_replay")
     out_dir.mkdir(parents=True, exist_ok=True)
     model = CameraModel.from_config(cfg.camera)
@@ -167,6 +173,8 @@ def replay(
     if not writer.isOpened():
         cap.release()
         raise ReplayError(f"{out_dir / 'annotated.mp4'}: cannot write video")
+    rec = Recorder(record, **(record_kw or {}), blocking=True, meta={"camera": cfg.model_dump(mode="json")["camera"],
+                                                      "source": str(video)}) if record else None
     rows: list[dict[str, Any]] = []
     bar = tqdm(total=n_total or None, unit="frame", desc=f"replay {video.name}", disable=not progress)
     k = 0
@@ -178,6 +186,8 @@ def replay(
             t = track.frame_times.get(k, t0 + k / fps) if track.frame_times else t0 + k / fps
             q = track.at(t)
             R = R_from_quat_wxyz(q)
+            if rec is not None:
+                rec.add(k, t, frame, q)
             box = pipe.process(frame, t)
             co = ctrl.step(t, box, q)
             raw = los_world(model, box.cx, box.cy, R) if box is not None else None
@@ -203,6 +213,8 @@ def replay(
         bar.close()
         cap.release()
         writer.release()
+        if rec is not None:
+            rec.close()
     if not rows:
         raise ReplayError(f"{video}: no frames could be read")
     with open(out_dir / "replay.csv", "w", newline="", encoding="utf-8") as f:
@@ -291,7 +303,10 @@ def _cmd(args: argparse.Namespace) -> int:
 
     cfg = config_from_args(args)
     try:
-        s = replay(args.video, cfg, args.log, args.out, args.t0, progress=not args.quiet)
+        from companion.app.record import record_kwargs
+
+        s = replay(args.video, cfg, args.log, args.out, args.t0, progress=not args.quiet, record=args.record,
+                   record_kw=record_kwargs(args))
     except ValueError as e:  # ReplayError, DetectorError, TrackerError: already one line
         if isinstance(e, UnicodeDecodeError):  # a binary --log file
             e = ValueError(f"{args.log}: not a text flight log (byte 0x{e.object[e.start]:02x} at offset {e.start})")
@@ -311,11 +326,14 @@ def register(subparsers: Any) -> None:
         description="Run detector + tracker + LOS + controller over a recorded video, as the app would have; "
         "write an annotated video (box, LOS, commanded attitude and thrust), a per-frame CSV and plots.",
     )
-    p.add_argument("video", help="recorded video file (frame size must match camera.width/height)")
+    p.add_argument("video", help="recorded video file or a --record folder (frame size = camera.width/height)")
     p.add_argument("--log", default=None, metavar="FLIGHT_LOG",
                    help="flight folder, or CSV / JSON-lines of t, qw, qx, qy, qz (NED/FRD); default: level")
     p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: VIDEO_replay/ next to it)")
     p.add_argument("--t0", type=float, default=0.0, help="flight time of the first frame, s (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from companion.app.record import add_record_arguments
+
+    add_record_arguments(p)
     add_config_arguments(p)
     p.set_defaults(func=_cmd)

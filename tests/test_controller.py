@@ -27,9 +27,11 @@ def ctrl() -> PNController:
 
 def test_step_accepts_no_position_or_velocity() -> None:
     sig = inspect.signature(PNController.step)
-    assert list(sig.parameters) == ["self", "t", "box", "q_wxyz_ned_frd"]
+    # Box, attitude estimate, optionally the accelerometer (specific force) and the current time: nothing else.
+    assert list(sig.parameters) == ["self", "t", "box", "q_wxyz_ned_frd", "accel_frd", "t_now"]
     hints = typing.get_type_hints(PNController.step)
     assert hints["box"] == BoundingBox | None
+    assert hints["accel_frd"] == np.ndarray | None and hints["t_now"] == float | None
     forbidden = ("pos", "vel", "gps", "ekf", "odom", "truth", "state")
     for name in list(sig.parameters) + [f for f in BoundingBox.__dataclass_fields__]:
         assert not any(w in name.lower() for w in forbidden), name

@@ -29,6 +29,11 @@ class SafetyConfig(Section):
 
     target_lost_timeout: Seconds = Field(1.0, gt=0.0, le=30.0)
     altitude_floor: Meters = Field(2.0, ge=0.0, le=1000.0, description="baro altitude above take-off, m")
+    altitude_reference: float | None = Field(
+        None, ge=-1000.0, le=10000.0,
+        description="PX4's barometric altitude (ALTITUDE.altitude_monotonic, m) of the ground the floor is "
+        "above; empty: the altitude at pre-flight (an app started on the ground). For a start in the air",
+    )
     max_engagement_time: Seconds = Field(20.0, gt=0.0, le=600.0)
     perception_stall_timeout: Seconds = Field(
         0.5, gt=0.0, le=10.0,

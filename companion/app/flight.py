@@ -34,6 +34,7 @@ from companion.controller import ControlOutput, PNController
 from companion.flightlog import FlightLog
 from companion.frames import R_from_euler_ned_deg, euler_ned_deg_from_R
 from companion.guidance import Setpoint, hover_setpoint
+from companion.hover import HoverThrustEstimator, use_hover_thrust
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -113,6 +114,9 @@ class FlightApp:
         self._connected = False
         self._last_out: ControlOutput | None = None
         self._deadman: LoopDeadman | None = None
+        self._hover: HoverThrustEstimator | None = None  # hover.estimate (companion/hover.py)
+        self._hover_u: float | None = None
+        self._hover_logged: float | None = None
 
     # ------------------------------------------------------------------------------ public
     def trip(self, reason: Reason, detail: str) -> None:
@@ -215,7 +219,8 @@ class FlightApp:
         if hover is not None and 0.05 < hover < 0.95:
             self.ctrl = self.ctrl.with_hover_thrust(hover, cfg.airframe.thrust_to_weight)
             self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
-        self._baro0 = self._baro_raw()  # on the ground: the altitude floor is above this
+        ref = cfg.safety.altitude_reference  # an app started in the air is told where the ground is
+        self._baro0 = self._baro_raw() if ref is None else ref  # on the ground: the altitude floor is above this
         if cfg.app.start == "takeoff":
             self.sm.go(State.ARM, "preflight checks passed")
             await self.link.arm()
@@ -333,6 +338,7 @@ class FlightApp:
         if baro is not None and baro < self.cfg.safety.altitude_floor and st is not State.ENGAGE:
             raise _Tripped(Abort(Reason.ALTITUDE_FLOOR, f"barometric altitude {baro:.1f} m below the floor "
                                  f"{self.cfg.safety.altitude_floor:.1f} m"))
+        self._hover_update(sp.thrust)
         await self.link.set_setpoint(sp)
         t_sent = self.clock()
         self._last_setpoint = t_sent
@@ -351,6 +357,7 @@ class FlightApp:
             out = self.ctrl.step(frame.t, box, self._attitude_at(frame.t))
             # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
             # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
+            self._hover_update(out.setpoint.thrust)
             await self.link.start_offboard(out.setpoint)
             self._check_fault()
             self._last_setpoint = self.clock()
@@ -358,6 +365,26 @@ class FlightApp:
             self._log_control(frame, out, out.setpoint, (self._last_setpoint - t_avail) * 1e3)
         else:
             await self._frame(frame, box, True, t_avail)
+
+    def _hover_update(self, thrust: float) -> None:
+        """hover.estimate: the IMU's specific force against the thrust we commanded since the last setpoint
+        (companion/hover.py); the controller flies with the estimate from then on."""
+        if not self.cfg.hover.estimate:
+            return
+        if self._hover is None:
+            self._hover = HoverThrustEstimator(self.ctrl.p.hover_thrust, self.cfg.hover)
+        imu, h = self.link.imu, self._hover
+        if imu is not None and self._hover_u is not None:
+            e = h.update(imu.t_rx, self._hover_u, -float(imu.accel_frd[2]))  # FRD: the thrust axis is -z
+            if e is not None:
+                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight)
+                self.log.write("hover", u_cmd=self._hover_u, a_up=-float(imu.accel_frd[2]),
+                               hover_thrust=e.hover_thrust, std=e.std, samples=e.samples)
+                if self._hover_logged is None or abs(e.hover_thrust - self._hover_logged) > 0.01:
+                    self._hover_logged = e.hover_thrust
+                    self.log.event(f"hover thrust {e.hover_thrust:.3f} estimated from the IMU ({e.samples} samples, "
+                                   f"std {e.std:.3f}; started from {h.hover0:.3f})")
+        self._hover_u = thrust
 
     def _level_flight(self, sp: Setpoint) -> Setpoint:
         """The same attitude with the thrust whose vertical part carries the weight (no climb, no sink).

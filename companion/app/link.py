@@ -245,6 +245,9 @@ class VehicleLink:
         self._baro_ref: float | None = None
         self._baro_recent: deque[float] = deque(maxlen=10)
         self._truth: TruthForLog | None = None
+        # Simulator ground truth (companion/px4sitl/truth.py), when there is one: replaces the EKF's
+        # position in truth_for_log. Scoring and the synthetic camera only.
+        self.truth_source: Any = None
         self._status_text: str | None = None
         self._last_rx = -math.inf
         self._lost = False
@@ -305,6 +308,8 @@ class VehicleLink:
 
     @property
     def truth_for_log(self) -> TruthForLog | None:
+        if self.truth_source is not None:
+            return self.truth_source.latest()
         return self._truth
 
     @property

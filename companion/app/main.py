@@ -45,6 +45,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--log-dir", help="parent folder of the flight log (overrides log.directory)")
     p.add_argument("--status", action="store_true", help="live status line on stderr")
     p.add_argument("--no-plot", action="store_true", help="do not write plot.png at the end")
+    from companion.app.record import add_record_arguments
+
+    add_record_arguments(p)
+    p.add_argument("--shadow", action="store_true",
+                   help="shadow mode: the whole pipeline beside the pilot; setpoints logged and plotted, never sent "
+                        "(no arming, no mode change, no offboard)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="shadow mode: stop after S seconds")
     p.set_defaults(func=_cmd_fly)
 
     lp = subparsers.add_parser("log", help="flight logs: plot, summary, export")
@@ -72,10 +79,22 @@ def _overrides(args: argparse.Namespace) -> list[str]:
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
+    from companion.app.record import is_recording, record_kwargs
     from companion.config import load_config
+    from companion.configbase import ConfigError
 
+    if args.record and is_recording(args.record):
+        raise ConfigError(f"--record {args.record}: already holds a recording (index.csv); choose a new folder")
     cfg = load_config(args.config, _overrides(args))
-    reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot))
+    if args.shadow:
+        from companion.app.shadow import shadow
+
+        code, folder, _ = asyncio.run(shadow(cfg, duration=args.duration, plot=not args.no_plot, record=args.record,
+                                             record_kw=record_kwargs(args)))
+        print(f"companion: shadow log {folder}", file=sys.stderr)
+        return code
+    reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot, record=args.record,
+                                        record_kw=record_kwargs(args)))
     print(f"companion: flight log {folder}", file=sys.stderr)
     return int(reason)
 
@@ -110,6 +129,10 @@ def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
                 return None
             # Stamped with the attitude sample's time: the frame is "captured" at the instant whose
             # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
+            source = getattr(link, "truth_source", None)
+            if source is not None:  # a simulator's truth (PX4 SIH): its true pose at that instant
+                true = source.at(att.t_rx)
+                return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
             return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
 
         cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
@@ -132,6 +155,8 @@ async def fly(
     stderr: Any = sys.stderr,
     handle_signals: bool = True,
     alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
+    record: str | Path | None = None,
+    record_kw: dict[str, Any] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
     """One flight, start to safe state. Returns (outcome, flight folder, summary).
 
@@ -150,8 +175,17 @@ async def fly(
     app: FlightApp | None = None
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
                                    else log.event(f"link {kind} {detail}"))
+    truth = None
     try:
+        from companion.px4sitl.truth import attach_truth
+
+        truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
         camera, perception, in_thread = build_camera(cfg, link, log)
+        if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
+            from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
+
+            camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
+                                     link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
                         status_line=status_line, perception_in_thread=in_thread)
         loop = asyncio.get_running_loop()
@@ -179,6 +213,8 @@ async def fly(
                 loop.remove_signal_handler(sig)
         with contextlib.suppress(Exception):
             await asyncio.wait_for(link.close(), 10.0)
+        if truth is not None:
+            truth.close()
         notifier.close()
     log.close(summary)
     if plot and cfg.log.plot:
@@ -284,7 +320,6 @@ def detector_available(cfg: Config) -> str | None:
 def run_sim(args: argparse.Namespace) -> int:
     """``companion sim``: simulated PX4 (own process) + synthetic camera + the app, in real time."""
     from companion.config import load_config
-    from companion.flightlog import gate_crossings, read_flight
 
     ov = [*getattr(args, "overrides", []), "app.camera=synthetic"]
     if getattr(args, "motion", None):
@@ -302,6 +337,14 @@ def run_sim(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, [*ov, f"link.url={px4.url}"])
         reason, folder, summary = asyncio.run(fly(cfg, status_line=not getattr(args, "no_status", False),
                                                   plot=not getattr(args, "no_plot", False)))
+    print_flight_report(folder, summary)
+    return int(reason)
+
+
+def print_flight_report(folder: Path, summary: dict[str, Any]) -> None:
+    """The end of ``companion sim``: outcome, each gate crossing (from the logged truth), latency, log folder."""
+    from companion.flightlog import gate_crossings, read_flight
+
     f = read_flight(folder)
     cross = gate_crossings(f)
     lat = summary.get("frame_to_setpoint_ms", {})
@@ -313,7 +356,6 @@ def run_sim(args: argparse.Namespace) -> int:
         print(f"frame -> setpoint latency: p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms; "
               f"app CPU {summary.get('cpu_percent', 0):.0f} %")
     print(f"log: {folder}" + (f"  plot: {folder / 'plot.png'}" if (folder / "plot.png").exists() else ""))
-    return int(reason)
 
 
 def add_sim_arguments(p: argparse.ArgumentParser) -> None:

@@ -5,6 +5,9 @@ camera and the flight app together in real time, exactly as on a drone: arm, tak
 engage, pass, recover, land. A live status line on stderr; the flight log and its plot at the end
 (companion/app/main.py :func:`run_sim`). The exit code is the flight's outcome (0 = passed, landed).
 
+``--autopilot px4``: the same flight against real PX4 SITL with its SIH simulator (from $PX4_SITL_DIR,
+px4.sitl_dir or --px4-dir), started and stopped here (companion/px4sitl/run.py).
+
 ``--in-process``: the fast in-process simulator (companion/sim/runner.py :func:`run_once`):
 dynamics + camera + controller in one loop, faster than real time, no autopilot.
 """
@@ -19,6 +22,7 @@ from typing import Any
 
 from companion.app.main import add_sim_arguments, run_sim
 from companion.config import add_config_arguments, config_from_args
+from companion.px4sitl.run import add_px4_arguments, run_px4_sim
 from companion.sim.gates import MOTIONS
 from companion.sim.runner import CAMERAS, CONTROLLERS, RunSpec, run_once
 
@@ -45,6 +49,7 @@ def register(subparsers: Any) -> None:
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_in_process_arguments(p)
     add_sim_arguments(p)
+    add_px4_arguments(p)
     add_config_arguments(p)
     p.set_defaults(func=cmd_sim)
 
@@ -55,6 +60,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if args.camera is not None:
         args.overrides = [*args.overrides,
                           f"app.synthetic.render={'image' if args.camera == 'rendered' else 'geometric'}"]
+    if args.autopilot == "px4":
+        return run_px4_sim(args)
     return run_sim(args)
 
 

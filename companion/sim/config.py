@@ -129,6 +129,10 @@ class BaselineConfig(Section):
 class SimConfig(Section):
     seed: int = Field(0, ge=0)
     rate: Hertz = Field(200.0, ge=200.0, le=5000.0, description="dynamics integration rate, Hz")
+    imu_to_controller: bool = Field(
+        True, description="give the simulated accelerometer to the controller (its closing-speed estimate); "
+        "false: box and attitude only, like an app without IMU telemetry"
+    )
     quad: SimQuadConfig = SimQuadConfig()
     wind: WindConfig = WindConfig()
     sensors: SensorsConfig = SensorsConfig()

@@ -29,6 +29,7 @@ from companion.app.states import Reason
 from companion.configbase import deep_merge
 from companion.engagement import Engagement, Phase
 from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
+from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.sim.camera import GeometricCamera
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
@@ -119,6 +120,9 @@ def with_overrides(cfg: Config, overrides: dict[str, Any]) -> Config:
     return Config.model_validate(deep_merge(cfg.model_dump(), overrides))
 
 
+_FLU_TO_FRD = np.array([1.0, -1.0, -1.0])
+
+
 class _Steering:
     """The controller as the engagement steps it: ``step(t, box, q)``, ``reset()``.
 
@@ -135,9 +139,12 @@ class _Steering:
         else:
             from companion.controller import PNController
 
+            if kind == "pn_true_vrel":  # the ablation sets v_rel_bar itself: no estimate on top of it
+                cfg = with_overrides(cfg, {"guidance": {"closing_speed": "fixed"}})
             self.ctrl = PNController.from_config(cfg)
         self._cfg = cfg
         self.truth: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # p, v, gate, gate v
+        self.imu: tuple[np.ndarray | None, float] | None = None  # (accelerometer FRD at capture, now), set per frame
 
     def reset(self) -> None:
         if self.kind == "baseline":
@@ -149,7 +156,8 @@ class _Steering:
 
     def step(self, t: float, box: Any, q: np.ndarray) -> Any:
         if self.kind == "pn":
-            return self.ctrl.step(t, box, q)
+            acc, now = self.imu if self.imu is not None else (None, None)
+            return self.ctrl.step(t, box, q, acc, now)
         assert self.truth is not None
         p, v, g, gv = self.truth
         if self.kind == "pn_true_vrel":
@@ -179,6 +187,14 @@ class _BaselineOut:
 _END_REASONS = {Reason.OK: "handback", Reason.NO_TARGET: "no_target", Reason.TARGET_LOST: "target_lost",
                 Reason.MAX_ENGAGEMENT: "max_engagement", Reason.ALTITUDE_FLOOR: "altitude_floor"}
 POST_CROSSING_S = 1.5  # s flown after the crossing at most while the engagement is still before RECOVER
+
+
+def _hover_estimator(cfg: Config, spec: RunSpec, ctrl: Any, ss: np.random.SeedSequence) -> tuple | None:
+    """(estimator, its own IMU) when hover.estimate is on; its own noise stream leaves the others' unchanged."""
+    if not cfg.hover.estimate or spec.controller == "baseline":
+        return None
+    return (HoverThrustEstimator(ctrl.p.hover_thrust, cfg.hover),
+            Sensors(cfg.sim.sensors, np.random.default_rng(ss.spawn(1)[0])))
 
 
 def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
@@ -221,6 +237,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)
     eng = Engagement.from_config(cfg, steer) if engaged else None
+    hover = _hover_estimator(cfg, spec, steer.ctrl, ss)
     scorer = PlaneCrossingScorer(gate.normal)
 
     dt = 1.0 / cfg.camera.rate
@@ -276,10 +293,14 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         # The controller's contract: the box of the frame captured at t_cap with the attitude at t_cap
         # (the app matches telemetry to the frame time). attitude_at_capture=False instead pairs the
         # late box with the attitude at arrival, which is what a naive pipeline does.
-        pending.append((t + delay, t, box, q_est))
+        imu = sensors.imu(quad.specific_force_body(), s.omega)  # one draw per frame, recorded or not
+        acc_frd = imu.accel * _FLU_TO_FRD  # the accelerometer as PX4 reports it (body FRD)
+        pending.append((t + delay, t, box, q_est, acc_frd))
         steer.truth = (s.p, s.v, g, gate.velocity(t))
         while pending and pending[0][0] <= t + 1e-9:
-            _, t_cap, b, q_cap = pending.popleft()
+            _, t_cap, b, q_cap, acc_cap = pending.popleft()
+            # The controller may use the accelerometer at the frame's capture time and the frame's age.
+            steer.imu = (acc_cap if cfg.sim.imu_to_controller else None, t)
             if sim.camera.attitude_at_capture:
                 q_est = q_cap
             if eng is None:
@@ -319,9 +340,14 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
             # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
-            traj.accel.append(sensors.imu(quad.specific_force_body(), s.omega).accel)
+            traj.accel.append(imu.accel)
             traj.baro.append(sensors.baro_altitude(float(s.p[2])))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+        if hover is not None:  # in-flight hover-thrust estimate (companion/hover.py), hover.estimate=true
+            est, imu = hover
+            acc = imu.imu(quad.specific_force_body(), quad.state.omega).accel  # FLU: z is the thrust axis
+            if est.update(t + dt, thrust_cmd, float(acc[2])) is not None:
+                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight)
         k += 1
     if crossing is not None:
         outcome = crossing  # ground truth scores the run, whatever the engagement did after

@@ -118,10 +118,15 @@ def test_controller_gets_only_time_box_and_attitude(monkeypatch):
     assert len(seen) == r.frames - 3  # three frames still in flight at the end
     run_once(cfg, RunSpec("linear_fast", 2))  # the engagement steps the controller the same way
     for args, kwargs in seen:
-        assert not kwargs and len(args) == 3
-        t, box, q = args
+        # Time, box, attitude, the accelerometer (specific force, body FRD) and the current time: no position,
+        # no velocity.
+        assert not kwargs and len(args) == 5
+        t, box, q, acc, now = args
         assert isinstance(t, float) and (box is None or isinstance(box, BoundingBox))
         assert isinstance(q, np.ndarray) and q.shape == (4,) and math.isclose(np.linalg.norm(q), 1.0)
+        assert isinstance(acc, np.ndarray) and acc.shape == (3,)
+        assert np.all(np.isfinite(acc)) and np.linalg.norm(acc) < 40.0
+        assert now == pytest.approx(t + 0.1)  # the frame's age is its delay
         if box is not None:
             assert box.t == t  # the capture time of the frame, 100 ms before it arrived
     ts = [a[0] for a, _ in seen[:len(seen) // 2]]
@@ -201,8 +206,12 @@ def test_true_vrel_ablation_feeds_the_true_closing_speed(monkeypatch):
         return orig(lambda_dot, n, k_pn, v_rel_bar)
 
     monkeypatch.setattr(guidance, "pn_demand", spy)
-    run_once(CFG, RunSpec("stationary", 3))
-    assert set(seen) == {CFG.guidance.v_rel_bar}
+    fixed = with_overrides(CFG, {"guidance": {"closing_speed": "fixed"}})
+    run_once(fixed, RunSpec("stationary", 3))
+    assert set(seen) == {CFG.guidance.v_rel_bar}  # the paper: a constant
+    seen.clear()
+    run_once(CFG, RunSpec("stationary", 3, protocol="controller"))  # PN until the gate plane: the lag cap acts
+    assert max(seen) <= CFG.guidance.v_rel_bar and min(seen) < CFG.guidance.v_rel_bar  # estimate: lowered near the gate
     seen.clear()
     r = run_once(CFG, RunSpec("stationary", 3, controller="pn_true_vrel"), record=True)
     # Closing speed to a stationary gate = speed along the LOS: starts at 10 cos(angle) m/s and grows.

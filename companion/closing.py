@@ -1,0 +1,133 @@
+"""Closing speed without position: range from the gate's apparent size, range rate from a small Kalman filter.
+
+Why: the PN law ``a_n = k_PN v_rel_bar lambda_dot n`` has the effective navigation gain
+``k_PN v_rel_bar / v_closing``. With the paper's fixed ``v_rel_bar`` (15 m/s, tuned on a fast x500) a slow
+vehicle gets a gain of ~7 (PX4's SIH quad at 4.4 m/s), which with its ~220 ms roll lag limit-cycles.
+This estimator lowers ``v_rel_bar`` to what the image shows, and only on evidence.
+
+Measurement: the gate is a ring of known radius ``r`` (``guidance.gate_radius``); the angle ``alpha`` its box
+subtends (the larger of width and height: a tilted ring keeps its full diameter along one axis) gives the
+range ``d = r / tan(alpha / 2)``. Boxes touching the image border are cut and are not measurements.
+
+Filter: state (d, d_dot), constant range acceleration over a frame, driven (when the IMU is given) by the
+range acceleration the vehicle's own acceleration explains, ``d_ddot = -a . l + d lambda_dot^2`` (a from the
+accelerometer and the attitude; the gate's own acceleration is process noise). The prior on ``d_dot`` is
+``-v_rel_bar`` with a standard deviation of ``v_rel_bar / 2``: until the image says otherwise the closing
+speed is the paper's bound (runs may start at cruise speed; an IMU integral from zero would be wrong).
+
+Output (:meth:`ClosingSpeedEstimator.speed`): ``margin |v_rel| + sigma_v``, an upper confidence value of the
+relative speed (PN needs ``k_PN v >= 2 v_rel`` to converge, so it errs high), never above ``v_rel_bar``,
+and near the gate at most ``d / (lag_margin * loop_lag)``: lag-aware, PN's loop gain ``N / t_go`` must stay
+below the bandwidth the vehicle's lag allows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from perception.los import CameraModel
+from perception.types import BoundingBox
+
+
+@dataclass(frozen=True, slots=True)
+class ClosingParams:
+    gate_radius: float  # m, radius of the ring the camera sees
+    v_rel_bar: float  # m/s, the prior and the upper bound
+    margin: float = 5.0  # v = margin * |v_rel| + sigma (then capped): effective navigation gain <= margin * k_PN
+    v_min: float = 1.0  # m/s, floor (a hovering start still gets some PN)
+    pixel_noise: float = 1.5  # px, std of a box edge
+    size_noise: float = 0.03  # relative std of the box size beyond pixel noise (detector, ring tilt)
+    accel_noise: float = 3.0  # m/s^2, std of the range acceleration the model does not explain (no IMU)
+    accel_noise_imu: float = 1.0  # m/s^2, the same when the IMU explains our own acceleration
+    border: float = 1.0  # px; a box this close to the image border is cut: no range from it
+    loop_lag: float = 0.0  # s, vehicle attitude response + filter lags; 0 = no range-based gain limit
+    lag_margin: float = 1.0  # the PN loop's crossover kept below 1 / (lag_margin * loop_lag)
+
+
+class ClosingSpeedEstimator:
+    """Per-engagement state; ``update`` once per frame, ``reset`` when the target changes."""
+
+    def __init__(self, params: ClosingParams, camera: CameraModel) -> None:
+        self.p = params
+        self.camera = camera
+        self.reset()
+
+    def reset(self) -> None:
+        self.x: np.ndarray | None = None  # (d, d_dot)
+        self.P = np.zeros((2, 2))
+        self.t: float | None = None
+
+    def speed(self, lambda_dot: float = 0.0, latency: float = 0.0) -> float:
+        """The relative speed to use in the PN law, m/s, given the current LOS rate (rad/s).
+
+        ``margin * |v_rel| + sigma`` with ``|v_rel|^2 = d_dot^2 + (d lambda_dot)^2`` (closing and crossing parts:
+        the paper's v_rel is the relative speed, and a gate crossing the view needs the gain too), at most
+        ``v_rel_bar``, and at most ``d / (lag_margin * (loop_lag + latency))``: PN's loop gain grows as
+        ``N / t_go`` while the vehicle's lag (and the frame's age ``latency``, s) stays, so near the gate the gain
+        is capped where the loop would ring."""
+        if self.x is None:
+            return self.p.v_rel_bar
+        d = max(float(self.x[0]), 0.0)
+        v_rel = math.hypot(float(self.x[1]), d * lambda_dot)
+        v = self.p.margin * v_rel + math.sqrt(max(float(self.P[1, 1]), 0.0))
+        if self.p.loop_lag > 0.0:
+            v = min(v, d / (self.p.lag_margin * (self.p.loop_lag + max(latency, 0.0))))
+        return min(self.p.v_rel_bar, max(self.p.v_min, v))
+
+    @property
+    def range(self) -> float | None:
+        return None if self.x is None else float(self.x[0])
+
+    def range_from_box(self, box: BoundingBox) -> float | None:
+        """Range to a ring of the configured radius from its box, or None (cut by the border, degenerate).
+
+        Each image axis whose box edges are both inside the image gives the angle the ring subtends along it;
+        the larger one is the ring's diameter (a tilted ring is foreshortened along the other axis only, which
+        makes the range too long and the closing speed too high: the safe side for PN)."""
+        cam, b = self.camera, self.p.border
+        x0, y0, x1, y1 = box.xyxy
+        alpha = 0.0
+        if x0 > b and x1 < cam.width - b:
+            alpha = _angle(cam.ray_cam(x0, box.cy), cam.ray_cam(x1, box.cy))
+        if y0 > b and y1 < cam.height - b:
+            alpha = max(alpha, _angle(cam.ray_cam(box.cx, y0), cam.ray_cam(box.cx, y1)))
+        if not (1e-6 < alpha < math.pi * 0.9):
+            return None
+        return self.p.gate_radius / math.tan(0.5 * alpha)
+
+    def update(self, t: float, box: BoundingBox | None, range_accel: float | None = None) -> None:
+        """Advance to frame time ``t`` with this frame's box (or None); ``range_accel`` is the range
+        acceleration the vehicle's measured acceleration explains (m/s^2), None without an IMU."""
+        p = self.p
+        if self.x is not None and self.t is not None and t > self.t:
+            dt = t - self.t
+            imu = range_accel is not None and math.isfinite(range_accel)
+            u = range_accel if imu else 0.0
+            F = np.array([[1.0, dt], [0.0, 1.0]])
+            self.x = F @ self.x + np.array([0.5 * dt * dt, dt]) * u
+            q = (p.accel_noise_imu if imu else p.accel_noise) ** 2
+            Q = q * np.array([[dt**3 / 3.0, dt * dt / 2.0], [dt * dt / 2.0, dt]])
+            self.P = F @ self.P @ F.T + Q
+        if self.t is None or t > self.t:
+            self.t = t
+        d = self.range_from_box(box) if box is not None else None
+        if d is None:
+            return
+        size = max(box.w, box.h)
+        sigma = d * (p.pixel_noise * math.sqrt(2.0) / size + p.size_noise)
+        if self.x is None:
+            self.x = np.array([d, -p.v_rel_bar])
+            self.P = np.diag([sigma * sigma, (0.5 * p.v_rel_bar) ** 2])
+            return
+        S = self.P[0, 0] + sigma * sigma
+        K = self.P[:, 0] / S
+        self.x = self.x + K * (d - self.x[0])
+        self.P = self.P - np.outer(K, self.P[0, :])
+        self.P = 0.5 * (self.P + self.P.T)
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b))
