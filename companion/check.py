@@ -33,7 +33,8 @@ def summary_lines(cfg: Any) -> list[str]:
     cam_src = "synthetic" if app.camera == "synthetic" else cfg.perception.source
     return [
         f"airframe: {af.name}, mass {af.mass:g} kg, hover thrust {af.hover_thrust:.3f} (config), "
-        f"T/W {af.thrust_to_weight:g}, thrust_min {af.thrust_min:g}",
+        f"T/W {af.thrust_to_weight:g}, thrust_min {af.thrust_min:g}; in-flight hover estimate "
+        f"{'on' if cfg.hover.estimate else 'off'}",
         f"camera: {cam_src}, {cfg.camera.width}x{cfg.camera.height} @ {cfg.camera.rate:g} Hz, fx {K[0, 0]:.1f} "
         f"fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}, distortion {dist}",
         f"guidance: k_pn {g.k_pn:g}, gamma_bar {g.gamma_bar:g} deg, v_rel_bar {g.v_rel_bar:g} m/s, fov {g.fov}",

@@ -73,7 +73,8 @@ PassStatus = Literal["engaged", "confirmed", "not_confirmed", "pulled_up"]
 class Steering(Protocol):
     """What the engagement needs of a controller: ``PNController`` (or an ablation wrapped like it)."""
 
-    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray) -> object: ...
+    def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray,
+             accel_frd: np.ndarray | None = None, t_now: float | None = None) -> object: ...
 
     def reset(self) -> None: ...
 
@@ -95,6 +96,7 @@ class EngagementParams:
     f_max: float
     width: int  # image size, px
     height: int
+    max_tilt: float = math.pi / 2  # rad; the straight pass stays inside the airframe's tilt envelope
     pass_gone_frames: int = 3  # frames of evidence that the gate is behind
     pass_shrink: float = 0.5  # a box this much smaller than the pass's largest is another gate (behind)
     complete_boxes: bool = True  # boxes cut by one image border are completed to a round gate
@@ -108,7 +110,7 @@ class EngagementParams:
                    a.recover_thrust_scale, a.pull_up_pitch, a.next_gate, a.max_gates,
                    cfg.airframe.hover_thrust if hover_thrust is None else hover_thrust, cfg.airframe.thrust_min,
                    cfg.airframe.f_min if f_min is None else f_min, cfg.airframe.f_max if f_max is None else f_max,
-                   cfg.camera.width, cfg.camera.height)
+                   cfg.camera.width, cfg.camera.height, math.radians(cfg.airframe.max_tilt))
 
 
 @dataclass
@@ -163,6 +165,7 @@ class Engagement:
     _peak: float = 0.0  # largest box side during the pass, px
     _gone: int = 0  # frames of "gate behind" evidence
     _old_gone: bool = True  # the last engaged gate has left the view (a track now is a new gate)
+    _imu: tuple[np.ndarray | None, float | None] = (None, None)  # this step's accelerometer and time now
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -175,9 +178,13 @@ class Engagement:
 
     # -- the step ------------------------------------------------------------------------------------
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray, baro_rel_alt: float | None,
-             events: Iterable[LinkEvent] = ()) -> Decision:
+             events: Iterable[LinkEvent] = (), accel_frd: np.ndarray | None = None,
+             t_now: float | None = None) -> Decision:
         """One frame captured at ``t`` (s, any monotonic clock): its box (or None), the attitude estimate at
-        ``t`` (NED/FRD wxyz), the barometric altitude above take-off (m, None if unknown), link/pilot events."""
+        ``t`` (NED/FRD wxyz), the barometric altitude above take-off (m, None if unknown), link/pilot events,
+        and for the controller the accelerometer (body FRD specific force, m/s^2) and the time now (the
+        frame's age), when the caller has them."""
+        self._imu = (accel_frd, t_now)
         if self._t0 is None:
             self._t0 = self._t_phase = t
         p = self.params
@@ -224,14 +231,14 @@ class Engagement:
         self._los_enu = None
         self.passes.append(GatePass(len(self.passes) + 1, t))
         self._go(Phase.ENGAGE, t)
-        out = self.controller.step(t, box, q)
+        out = self.controller.step(t, box, q, *self._imu)
         self._note_los(out)
         return Decision(t, Phase.ENGAGE, out.setpoint, out, why, prev,
                         events=(f"gate {self.passes[-1].gate} engaged",))
 
     def _engage_step(self, t: float, box: BoundingBox | None, valid: bool, q: np.ndarray,
                      baro: float | None) -> Decision:
-        out = self.controller.step(t, box, q)
+        out = self.controller.step(t, box, q, *self._imu)
         if getattr(out, "mode", "") == "pn":
             self._last_valid = t
         self._note_los(out)
@@ -328,19 +335,29 @@ class Engagement:
         if los is not None:
             self._los_enu = P_NED_ENU @ np.asarray(los, dtype=float)
 
-    def _straight_setpoint(self, q: np.ndarray) -> Setpoint:
+    def _thrust_model(self) -> tuple[float, float, float, float]:
+        """(hover thrust, thrust_min, f_min, f_max): the controller's current numbers when it has them (the app
+        may re-estimate the hover thrust in flight, companion/hover.py), else the parameters'."""
+        cp = getattr(self.controller, "p", None)
+        gp = getattr(cp, "guidance", None)
+        if cp is not None and gp is not None and hasattr(cp, "hover_thrust"):
+            return cp.hover_thrust, cp.thrust_min, gp.f_min, gp.f_max
         p = self.params
+        return p.hover_thrust, p.thrust_min, p.f_min, p.f_max
+
+    def _straight_setpoint(self, q: np.ndarray) -> Setpoint:
+        hover, thrust_min, f_min, f_max = self._thrust_model()
         l = self._los_enu  # noqa: E741
         if l is None:  # no LOS was ever filtered (cannot happen after a close estimate): look straight ahead
             R = R_from_quat_wxyz(q)
             l = P_NED_ENU @ R[:, 0]  # noqa: E741
-        sol = guidance.straight_pass(l, p.f_min, p.f_max)
-        return guidance.to_setpoint(sol.R_W_B, sol.f_th, p.hover_thrust, p.thrust_min)
+        sol = guidance.straight_pass(l, f_min, f_max, max_tilt=self.params.max_tilt)
+        return guidance.to_setpoint(sol.R_W_B, sol.f_th, hover, thrust_min)
 
     def _recover_setpoint(self, q: np.ndarray, pull_up: bool = False) -> Setpoint:
         p = self.params
         yaw = euler_ned_deg_from_R(R_from_quat_wxyz(q))[2]
-        thrust = min(1.0, p.hover_thrust * p.recover_thrust_scale)
+        thrust = min(1.0, self._thrust_model()[0] * p.recover_thrust_scale)
         if not pull_up:
             return guidance.hover_setpoint(yaw, thrust)
         # Nose up: the thrust tilts backwards (brakes); its vertical part still carries scale x weight.

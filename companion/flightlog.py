@@ -16,16 +16,25 @@ Layout of a flight folder::
     plot.png       optional, ``plot_flight``
 
 Times are seconds on the flight clock (monotonic, 0 at log start).
+
+Failing safe: a log that cannot be started (folder not writable, disk full or nearly full) is a
+``FlightLogError`` before anything flies, and a half-made folder is removed. A write that fails in
+flight never raises into the flight: that topic stops (what it holds stays valid, nothing false is
+added), one line goes to stderr, and the summary says ``log_complete: false`` with the error. A
+reserve file (``RESERVE_BYTES``) taken at the start is given back at the end, so the last buffered
+rows and ``summary.json`` still fit on a disk that filled up during the flight.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime as dt
 import io
 import json
 import math
 import os
+import shutil
 import socket
 import sys
 import time
@@ -61,6 +70,12 @@ TOPICS: dict[str, tuple[str, ...]] = {
     "hover": ("t", "u_cmd", "a_up", "hover_thrust", "std", "samples"),
 }
 IMMEDIATE = frozenset({"states", "events"})  # rare and precious: straight to the OS
+RESERVE_BYTES = 256 * 1024  # > the topics' write buffers (8 KB each) + summary.json
+DEFAULT_FLUSH_INTERVAL = 0.25  # s; a SIGKILL loses at most this + one gap between writes (see FlightLog)
+
+
+class FlightLogError(RuntimeError):
+    """The flight log cannot be started (one line: folder, what is wrong). Nothing has flown."""
 
 
 def _fmt(v: Any) -> Any:
@@ -95,22 +110,31 @@ class _Topic:
     def close(self, sync: bool) -> None:
         if self._f.closed:
             return
-        self._f.flush()
-        if sync:
-            os.fsync(self._f.fileno())
-        self._f.close()
+        try:
+            self._f.flush()
+            if sync:
+                os.fsync(self._f.fileno())
+        finally:
+            with contextlib.suppress(OSError):  # (the flush above already reported the error)
+                self._f.close()
 
 
 class FlightLog:
-    """Writer. ``write(topic, **values)``; ``flush()`` is called by ``tick()`` at least every flush_interval."""
+    """Writer. ``write(topic, **values)``; ``flush()`` is called by ``tick()`` at least every flush_interval.
+
+    What a SIGKILL can lose: rows are handed to the OS when a write finds ``flush_interval`` passed
+    since the last flush, so at most ``flush_interval`` plus the gap between two writes (the flight
+    app logs telemetry every 50 ms): 0.3 s with the default 0.25 s.
+    """
 
     def __init__(
         self,
         folder: Path,
         config: Mapping[str, Any] | None = None,
-        flush_interval: float = 0.5,
+        flush_interval: float = DEFAULT_FLUSH_INTERVAL,
         clock: Any = time.monotonic,
         argv: Sequence[str] | None = None,
+        stderr: Any = None,
     ) -> None:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=False)
@@ -119,6 +143,9 @@ class FlightLog:
         self.flush_interval = float(flush_interval)
         self._last_flush = self.t0
         self._topics: dict[str, _Topic] = {}
+        self._failed: dict[str, str] = {}  # topic -> first write error (that topic writes no more)
+        self.dropped = 0  # rows not written because their topic had failed
+        self._stderr = stderr
         self.closed = False
         meta = {
             "format": "companion-flightlog-csv",
@@ -137,12 +164,30 @@ class FlightLog:
         _write_json(self.folder / "summary.json", {"outcome": "running"})
         for name in TOPICS:
             self._topics[name] = _Topic(self.folder / f"{name}.csv", TOPICS[name])
+        # Real blocks (zeros are written, not a sparse hole), given back in close().
+        with open(self.folder / ".reserve", "wb") as f:
+            f.write(bytes(RESERVE_BYTES))
+            f.flush()
+            os.fsync(f.fileno())
 
     @classmethod
-    def create(cls, directory: str | Path, config: Mapping[str, Any] | None = None, **kw: Any) -> FlightLog:
-        """A new folder ``directory/YYYYmmdd-HHMMSS[-n]`` (never reuses an existing one)."""
+    def create(cls, directory: str | Path, config: Mapping[str, Any] | None = None, min_free_mb: float = 0.0,
+               **kw: Any) -> FlightLog:
+        """A new folder ``directory/YYYYmmdd-HHMMSS[-n]`` (never reuses an existing one).
+
+        Any problem (not writable, not a folder, less than ``min_free_mb`` free, a write failing) is a
+        one-line FlightLogError, and nothing half-made is left behind.
+        """
         base = Path(directory)
-        base.mkdir(parents=True, exist_ok=True)
+        try:
+            base.mkdir(parents=True, exist_ok=True)
+            st = os.statvfs(base)
+        except OSError as e:
+            raise FlightLogError(f"{base}: cannot make the flight-log folder ({e.strerror or e})") from None
+        free_mb = st.f_bavail * st.f_frsize / 1e6
+        if free_mb < min_free_mb:
+            raise FlightLogError(f"{base}: {free_mb:.1f} MB free, the flight log needs {min_free_mb:g} MB "
+                                 "(log.min_free_mb)")
         stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
         for n in range(1000):
             folder = base / (stamp if n == 0 else f"{stamp}-{n}")
@@ -150,7 +195,16 @@ class FlightLog:
                 return cls(folder, config, **kw)
             except FileExistsError:
                 continue
-        raise RuntimeError(f"flight log: cannot create a new folder under {base}")
+            except OSError as e:
+                if folder.is_dir():  # ours (exist_ok=False above): half-made, never a flight log
+                    shutil.rmtree(folder, ignore_errors=True)
+                raise FlightLogError(f"{base}: cannot write the flight log ({e.strerror or e})") from None
+        raise FlightLogError(f"{base}: cannot create a new flight-log folder (1000 exist for {stamp})")
+
+    @property
+    def complete(self) -> bool:
+        """Every row written reached its file (no write failed)."""
+        return not self._failed
 
     def now(self) -> float:
         return self._clock() - self.t0
@@ -165,9 +219,15 @@ class FlightLog:
         unknown = set(values) - set(tp.columns)
         if unknown:
             raise KeyError(f"flight log: topic {topic!r} has no column(s) {sorted(unknown)}")
-        tp.write([values.get(c) for c in tp.columns])
-        if topic in IMMEDIATE:
-            tp.flush()
+        if topic in self._failed:
+            self.dropped += 1
+            return
+        try:
+            tp.write([values.get(c) for c in tp.columns])
+            if topic in IMMEDIATE:
+                tp.flush()
+        except OSError as e:
+            self._fail(topic, e)
         self.tick()
 
     def state(self, from_state: str, to_state: str, reason: str, t: float | None = None) -> None:
@@ -184,31 +244,82 @@ class FlightLog:
             self.flush()
 
     def flush(self) -> None:
-        for tp in self._topics.values():
-            tp.flush()
+        for name, tp in self._topics.items():
+            if name in self._failed:
+                continue
+            try:
+                tp.flush()
+            except OSError as e:
+                self._fail(name, e)
         self._last_flush = self._clock()
+
+    def _fail(self, topic: str, err: OSError) -> None:
+        """A write failed: that topic writes no more (its file stays valid up to here); the flight goes on."""
+        why = err.strerror or str(err)
+        first = not self._failed
+        self._failed[topic] = why
+        if first:
+            file = topic if "." in topic else f"{topic}.csv"
+            self._say(f"companion: flight log write failed ({file}: {why}) at t={self.now():.2f} s: "
+                      "the flight goes on, the log is incomplete from here")
+
+    def _say(self, line: str) -> None:
+        with contextlib.suppress(Exception):  # stderr itself may be gone: never raise into the flight
+            out = self._stderr if self._stderr is not None else sys.stderr
+            out.write(line + "\n")
+            out.flush()
 
     def rows(self, topic: str) -> int:
         return self._topics[topic].rows
 
+    def write_json(self, name: str, data: Any) -> bool:
+        """An extra JSON file in the flight folder (e.g. preflight.json); like every log write, a failure
+        never raises into the flight: it marks the log incomplete and returns False."""
+        if self.closed:
+            return False
+        try:
+            _write_json(self.folder / name, data)
+            return True
+        except OSError as e:
+            self._fail(name, e)
+            return False
+
     def close(self, summary: Mapping[str, Any] | None = None) -> None:
+        """Close every topic and write the final summary; never raises for a write error."""
         if self.closed:
             return
-        for tp in self._topics.values():
-            tp.close(sync=True)
+        self.closed = True
+        with contextlib.suppress(OSError):
+            (self.folder / ".reserve").unlink()  # the room the last rows and the summary need
+        for name, tp in self._topics.items():
+            try:
+                tp.close(sync=True)
+            except OSError as e:
+                self._fail(name, e)
         if summary is not None:
             s = dict(summary)
             s.setdefault("duration_s", self.now())
             s["rows"] = {k: v.rows for k, v in self._topics.items()}
-            _write_json(self.folder / "summary.json", s)
-        self.closed = True
+            s["log_complete"] = self.complete
+            if not self.complete:
+                s["log_errors"] = dict(self._failed)
+                s["log_rows_dropped"] = self.dropped
+            try:
+                _write_json(self.folder / "summary.json", s)
+            except OSError as e:
+                self._say(f"companion: flight log: cannot write summary.json ({e.strerror or e})")
 
 
 def _write_json(path: Path, data: Any) -> None:
-    # Write-then-rename: a reader never sees half a JSON file.
+    # Write-then-rename: a reader never sees half a JSON file; a failed write leaves no .tmp behind.
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=_json_default) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(data, indent=1, default=_json_default) + "\n", encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def _json_default(o: Any) -> Any:
@@ -294,7 +405,15 @@ def read_flight(folder: str | Path, topics: Iterable[str] | None = None) -> Flig
 
     def js(name: str) -> dict[str, Any]:
         p = folder / name
-        return json.loads(p.read_text(encoding="utf-8")) if p.exists() else {}
+        if not p.exists():
+            return {}
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ValueError(f"{p}: not valid JSON ({' '.join(str(e).split())[:80]})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"{p}: expected a JSON object, got {type(data).__name__}")
+        return data
 
     flight = Flight(folder, js("meta.json"), js("config.json"), js("summary.json"))
     names = list(topics) if topics is not None else [p.stem for p in sorted(folder.glob("*.csv"))]

@@ -419,12 +419,22 @@ def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:
     return Setpoint(0.0, 0.0, yaw_deg, hover_thrust, R)
 
 
-def straight_pass(l: np.ndarray, f_min: float, f_max: float, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
+def straight_pass(l: np.ndarray, f_min: float, f_max: float, y_ref: np.ndarray | None = None,  # noqa: E741
+                  max_tilt: float = math.pi / 2) -> ThrustAttitude:
     """The gate pass: zero PN demand, optical axis (body x) on the LOS ``l`` (world, unit), no roll about it
     (body y horizontal: the PN frame with phi = theta = 0) and the thrust whose vertical part carries the
     weight, ``f = g / (e_z . z_B)`` within [f_min, f_max]. The net acceleration is then horizontal and along
     the LOS's heading (``-g tan(elevation)``): no climb, no sink, no bank held through the gate.
+
+    The tilt equals the LOS elevation; a LOS steeper than ``max_tilt`` (rad) gets the axis of the same
+    heading at elevation +-max_tilt (the envelope wins over pointing).
     """
+    lx, ly, lz = (float(v) for v in l)
+    h = math.hypot(lx, ly)
+    elev = math.atan2(lz, h)
+    if abs(elev) > max_tilt and h > 1e-9:
+        e = math.copysign(max_tilt, elev)
+        l = np.array([lx / h * math.cos(e), ly / h * math.cos(e), math.sin(e)])  # noqa: E741
     R_W_PN = pn_frame(l, y_ref)
     up = float(R_W_PN[2, 2])  # vertical part of the thrust axis: cos(LOS elevation)
     f = min(f_max, max(f_min, G / max(up, 1e-3)))

@@ -1,7 +1,10 @@
 """``companion replay VIDEO [--log FLIGHT_LOG] [--out DIR]``: perception + LOS + controller over a recorded video.
 
 What the app would have done on each frame: detector + tracker (perception.pipeline) -> box ->
-LOS (perception.los, attitude at the frame time) -> PNController -> commanded attitude and thrust.
+LOS (perception.los, attitude at the frame time) -> PNController -> commanded attitude and thrust;
+and the app's engagement core (companion/engagement.py) on the same boxes: its phase (ACQUIRE,
+ENGAGE, PASS, RECOVER, ...), the setpoint the app would have sent and its gate events (columns
+``state``, ``app_*``; ``summary.json`` ``engagement``).
 Writes ``DIR/annotated.mp4`` (box, raw detections, LOS, commanded attitude and thrust),
 ``DIR/replay.csv`` (one row per frame) and ``DIR/replay.png`` (plots), with a progress bar.
 
@@ -32,6 +35,9 @@ CSV_COLUMNS = (
     "frame", "t", "box", "cx", "cy", "w", "h", "confidence", "los_raw_n", "los_raw_e", "los_raw_d",
     "los_n", "los_e", "los_d", "mode", "rejected", "roll_deg", "pitch_deg", "yaw_deg", "thrust",
     "qw", "qx", "qy", "qz",
+    # The engagement core (companion/engagement.py), as the app runs it on these frames: its phase, the
+    # setpoint the app would have sent (blank while acquiring: PX4 holds) and its events.
+    "state", "app_roll_deg", "app_pitch_deg", "app_yaw_deg", "app_thrust", "app_event",
 )
 
 
@@ -139,6 +145,7 @@ def replay(
 
     from companion.app.record import Recorder, RecordingReader, is_recording
     from companion.controller import PNController
+    from companion.engagement import Engagement
     from companion.frames import R_from_quat_wxyz
     from perception.los import CameraModel, los_world
     from perception.pipeline import Pipeline
@@ -168,7 +175,9 @@ def replay(
     out_dir.mkdir(parents=True, exist_ok=True)
     model = CameraModel.from_config(cfg.camera)
     pipe = Pipeline.from_config(cfg)
-    ctrl = PNController.from_config(cfg)
+    ctrl = PNController.from_config(cfg)  # the controller alone on every frame (what this frame's box asks for)
+    eng = Engagement.from_config(cfg, PNController.from_config(cfg))  # the app's decisions (own controller)
+    ended = ""
     writer = cv2.VideoWriter(str(out_dir / "annotated.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
     if not writer.isOpened():
         cap.release()
@@ -190,6 +199,10 @@ def replay(
                 rec.add(k, t, frame, q)
             box = pipe.process(frame, t)
             co = ctrl.step(t, box, q)
+            d = eng.step(t, box, q, None)  # no barometer in a video: the altitude floor is not checked
+            if d.changed and d.phase.done:
+                ended = f"{d.phase.value} ({d.reason.name if d.reason else ''}): {d.why}"
+            asp = d.setpoint
             raw = los_world(model, box.cx, box.cy, R) if box is not None else None
             sp = co.setpoint
             row = {
@@ -204,9 +217,13 @@ def replay(
                 "mode": co.mode, "rejected": co.rejected or "",
                 "roll_deg": sp.roll_deg, "pitch_deg": sp.pitch_deg, "yaw_deg": sp.yaw_deg, "thrust": sp.thrust,
                 "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
+                "state": d.phase.value, "app_roll_deg": asp.roll_deg if asp else "",
+                "app_pitch_deg": asp.pitch_deg if asp else "", "app_yaw_deg": asp.yaw_deg if asp else "",
+                "app_thrust": asp.thrust if asp else "",
+                "app_event": "; ".join([*d.events, d.why] if d.why else d.events),
             }
             rows.append(row)
-            writer.write(_annotate(frame, pipe.last_detections, box, co, model, R))
+            writer.write(_annotate(frame, pipe.last_detections, box, co, model, R, d.phase.value))
             k += 1
             bar.update(1)
     finally:
@@ -225,6 +242,7 @@ def replay(
     summary = {
         "video": str(video), "frames": len(rows), "fps": fps, "boxes": sum(r["box"] for r in rows),
         "attitude": str(log) if log is not None else "level", "out": str(out_dir),
+        "engagement": {"state": eng.phase.value, "end": ended, "passes": [g.as_dict() for g in eng.passes]},
         "annotated": str(out_dir / "annotated.mp4"), "csv": str(out_dir / "replay.csv"),
         "plot": str(out_dir / "replay.png"), "pipeline": pipe.stats.summary(),
     }
@@ -232,7 +250,8 @@ def replay(
     return summary
 
 
-def _annotate(frame: np.ndarray, dets: list, box: Any, co: Any, model: Any, R: np.ndarray) -> np.ndarray:
+def _annotate(frame: np.ndarray, dets: list, box: Any, co: Any, model: Any, R: np.ndarray,
+              state: str = "") -> np.ndarray:
     import cv2
 
     img = frame.copy()
@@ -254,6 +273,7 @@ def _annotate(frame: np.ndarray, dets: list, box: Any, co: Any, model: Any, R: n
         f"t {co.t:7.3f}s  mode {co.mode}" + (f"  ({co.rejected})" if co.rejected else ""),
         f"roll {sp.roll_deg:+6.1f}  pitch {sp.pitch_deg:+6.1f}  yaw {sp.yaw_deg:+7.1f} deg",
         f"thrust {sp.thrust:.3f}  |lambda_dot| {co.lambda_dot:.3f} rad/s",
+        f"engagement: {state}",
     ]
     panel = img[0:8 + 18 * len(lines), 0:420]
     panel[:] = (panel * 0.35).astype(np.uint8)  # darkened panel: text readable on any background

@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from perception.plausibility import plausible_candidates
 from perception.types import BoundingBox
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
@@ -295,8 +296,8 @@ class Detector:
         if not keep.any():
             self.last_ms = (time.perf_counter() - t0) * 1e3
             return []
-        b = out[:4, keep].T.astype(np.float64)
-        conf = mine[keep].astype(np.float64)
+        # Finite, in-range, sane-sized candidates only, at most MAX_CANDIDATES of them into NMS.
+        b, conf = plausible_candidates(out[:4, keep].T, mine[keep], self.input_hw)
         x0 = (b[:, 0] - b[:, 2] / 2 - dx) / s
         y0 = (b[:, 1] - b[:, 3] / 2 - dy) / s
         w = b[:, 2] / s

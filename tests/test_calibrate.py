@@ -179,3 +179,42 @@ def test_calibrate_refuses_poor_sets(tmp_path):
 
     res = _calibrate(tmp_path / "missing", tmp_path / "c.yaml")
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
+
+
+def _charuco_views(folder: Path, poses: list[tuple[float, ...]]) -> None:
+    """The same lens and poses, a ChArUco board (7 x 5 squares of 40 mm, 30 mm markers) instead."""
+    cols, rows, sq, px = 7, 5, 0.04, 80
+    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    board = cv2.aruco.CharucoBoard((cols, rows), sq, 0.03, d).generateImage((cols * px, rows * px), marginSize=0)
+    board = cv2.copyMakeBorder(board, px, px, px, px, cv2.BORDER_CONSTANT, value=255)
+    folder.mkdir(parents=True)
+    rays, rng = _rays(), np.random.default_rng(1)
+    for k, (u, v, depth, tx, ty, spin) in enumerate(poses):
+        R = Rotation.from_euler("xyz", [tx, ty, spin], degrees=True)
+        t = depth * (np.linalg.inv(K_TRUE) @ np.array([u, v, 1.0])) - R.apply([cols * sq / 2, rows * sq / 2, 0.0])
+        Rm = R.as_matrix()
+        Hinv = np.linalg.inv(np.column_stack([Rm[:, 0], Rm[:, 1], t]))
+        x, y = rays[..., 0], rays[..., 1]
+        Z = Hinv[2, 0] * x + Hinv[2, 1] * y + Hinv[2, 2]
+        X = (Hinv[0, 0] * x + Hinv[0, 1] * y + Hinv[0, 2]) / Z
+        Y = (Hinv[1, 0] * x + Hinv[1, 1] * y + Hinv[1, 2]) / Z
+        mx = ((X / sq + 1) * px - 0.5).astype(np.float32)
+        my = ((Y / sq + 1) * px - 0.5).astype(np.float32)
+        img = cv2.GaussianBlur(cv2.remap(board, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                         borderValue=150), (0, 0), 0.8)
+        noisy = np.clip(img.astype(np.float32) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(folder / f"view_{k:02d}.png"), noisy)
+
+
+@pytest.mark.timeout(300)
+def test_calibrate_with_a_charuco_board(tmp_path):
+    views = tmp_path / "charuco"
+    _charuco_views(views, GOOD_POSES)
+    out = tmp_path / "camera.yaml"
+    res = subprocess.run([sys.executable, "-m", "companion.cli", "calibrate", str(views), "--board", "charuco",
+                          "--cols", "7", "--rows", "5", "--square", "0.04", "--marker", "0.03", "-o", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    cam = yaml.safe_load(out.read_text())["camera"]
+    for key, true in (("fx", K_TRUE[0, 0]), ("fy", K_TRUE[1, 1]), ("cx", K_TRUE[0, 2]), ("cy", K_TRUE[1, 2])):
+        assert cam[key] == pytest.approx(true, rel=0.01), (key, cam)

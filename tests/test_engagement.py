@@ -115,18 +115,24 @@ def test_close_starts_a_straight_level_pass_on_the_last_los():
     assert all(h.phase is Phase.PASS and h.setpoint is sp for h in held)
 
 
-@settings(max_examples=300, deadline=None)
-@given(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-0.8, 0.8))
-def test_straight_pass_property(x: float, y: float, z: float):
+@settings(max_examples=500, deadline=None)
+@given(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-3.0, 3.0), st.floats(5.0, 89.0))
+def test_straight_pass_property(x: float, y: float, z: float, max_tilt_deg: float):
     l = np.array([x, y, z])  # noqa: E741
     if np.linalg.norm(l[:2]) < 1e-3:
         return
     l /= np.linalg.norm(l)  # noqa: E741
     gp = PNController.from_config(CFG).p.guidance
-    sol = guidance.straight_pass(l, gp.f_min, gp.f_max)
+    sol = guidance.straight_pass(l, gp.f_min, gp.f_max, max_tilt=math.radians(max_tilt_deg))
     R = sol.R_W_B
     assert np.allclose(R.T @ R, np.eye(3), atol=1e-12)
-    assert R[:, 0] @ l == pytest.approx(1.0)  # optical axis on the LOS
+    tilt = math.degrees(math.acos(min(1.0, R[2, 2])))
+    elev = math.degrees(math.asin(l[2]))
+    assert tilt <= max_tilt_deg + 1e-9  # the envelope holds
+    if abs(elev) <= max_tilt_deg:
+        assert R[:, 0] @ l == pytest.approx(1.0)  # optical axis on the LOS
+    else:  # same heading, elevation at the envelope
+        assert tilt == pytest.approx(max_tilt_deg) and R[:2, 0] @ l[:2] > 0
     assert R[2, 1] == pytest.approx(0.0, abs=1e-12)  # no roll about it
     net = sol.f_th * R[:, 2] + guidance.g_W  # mass-normalised acceleration
     if gp.f_min <= guidance.G / R[2, 2] <= gp.f_max:
@@ -251,7 +257,7 @@ def test_the_step_sees_no_position_velocity_or_truth():
     import inspect
 
     params = list(inspect.signature(Engagement.step).parameters)
-    assert params == ["self", "t", "box", "q_wxyz_ned_frd", "baro_rel_alt", "events"]
+    assert params == ["self", "t", "box", "q_wxyz_ned_frd", "baro_rel_alt", "events", "accel_frd", "t_now"]
 
 
 def test_yawed_vehicle_passes_along_its_los():

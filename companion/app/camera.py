@@ -8,11 +8,14 @@ synthetic camera (companion/app/synthcam.py) alike.
 from __future__ import annotations
 
 import asyncio
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
+from perception.plausibility import FrameChecker, FrameFault
 from perception.types import BoundingBox
 
 
@@ -91,3 +94,36 @@ class DeviceCamera:
 
     def close(self) -> None:
         self.source.close()
+
+
+class CheckedCamera:
+    """Any camera source, every frame checked (perception/plausibility.py) before anyone sees it.
+
+    An implausible frame (wrong size or type, a timestamp that repeats, goes back, runs ahead or is
+    stale, the same image over and over) raises CameraFailed: the flight ends in its named safe
+    state (CAMERA_FAILED) instead of flying on it.
+    """
+
+    def __init__(self, inner: CameraSource, checker: FrameChecker,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.inner = inner
+        self.checker = checker
+        self.clock = clock
+
+    @classmethod
+    def from_config(cls, inner: CameraSource, cfg: Any) -> CheckedCamera:
+        return cls(inner, FrameChecker(cfg.camera.width, cfg.camera.height, cfg.safety.camera_frozen_timeout))
+
+    async def read(self) -> Frame:
+        frame = await self.inner.read()
+        try:
+            self.checker.check(frame.t, frame.image, self.clock())
+        except FrameFault as e:
+            raise CameraFailed(str(e)) from None
+        return frame
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def __getattr__(self, name: str) -> Any:  # the wrapped source's own attributes (render, faults, ...)
+        return getattr(self.inner, name)

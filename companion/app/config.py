@@ -44,6 +44,11 @@ class SafetyConfig(Section):
         description="s the event loop may stop while commanding before the process kills itself (PX4 failsafe); "
         "at least 0.5 s (a detector call or a GC pause is not a stall) and later than the link's loop guard",
     )
+    camera_frozen_timeout: Seconds = Field(
+        0.3, ge=0.05, le=5.0,
+        description="s of byte-identical camera images (fresh timestamps) before the camera counts as frozen "
+        "(CAMERA_FAILED); perception/plausibility.py says why",
+    )
     land_after_abort: bool = Field(
         False, description="after an abort in HOLD, land and disarm (False: stay in HOLD for the pilot)"
     )
@@ -75,8 +80,9 @@ class SyntheticCameraConfig(Section):
     height_offset: Meters = Field(0.0, ge=-50.0, le=50.0, description="m above the vehicle")
     radius: Meters = Field(1.0, gt=0.05, le=20.0, description="visual gate radius, m")
     count: int = Field(1, ge=1, le=20, description="gates in a row")
-    fault: Literal["none", "stall", "nan_box", "los_jump", "lose_target", "exception", "block"] = Field(
-        "none", description="test switch: camera/perception fault injected after fault_after"
+    fault: Literal["none", "stall", "nan_box", "los_jump", "lose_target", "exception", "block", "freeze"] = Field(
+        "none", description="test switch: camera/perception fault injected after fault_after "
+        "(freeze: the camera repeats its last image with fresh timestamps)"
     )
     fault_after: Seconds = Field(1.0, ge=0.0, le=600.0, description="s after the first frame")
 
@@ -122,6 +128,10 @@ class AppConfig(Section):
 class LogConfig(Section):
     directory: str = Field("flights", description="one sub-folder per flight is created here")
     flush_interval: Seconds = Field(
-        0.5, gt=0.0, le=1.0, description="s; CSV buffers reach the OS this often"
+        0.25, gt=0.0, le=1.0,
+        description="s; CSV buffers reach the OS this often (a SIGKILL loses at most this + 50 ms)",
+    )
+    min_free_mb: Number = Field(
+        20.0, ge=0.0, le=1e6, description="MB free under log.directory, or the flight is refused before it starts"
     )
     plot: bool = Field(True, description="write plot.png into the flight folder at the end")

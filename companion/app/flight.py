@@ -25,22 +25,23 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from companion.app import link as linkmod
+from companion.app import preflight
 from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
 from companion.app.notify import Notifier
-from companion.app.safety import Abort, CloseDetector, SafetyLimits, mode_is_pilot
+from companion.app.outcome import GateJudge, verdict
+from companion.app.safety import Abort, mode_is_pilot
 from companion.app.states import Reason, State, StateMachine, Transition
 from companion.controller import ControlOutput, PNController
+from companion.engagement import Decision, Engagement, EngagementParams, Phase
 from companion.flightlog import FlightLog
-from companion.frames import R_from_euler_ned_deg, euler_ned_deg_from_R
-from companion.guidance import Setpoint, hover_setpoint
+from companion.frames import euler_ned_deg_from_R
 from companion.hover import HoverThrustEstimator, use_hover_thrust
 
 if TYPE_CHECKING:
     from companion.config import Config
 
 GROUND_STATES = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
-PASS_GONE_FRAMES = 3  # frames without the gate after "close": it has left the view (passed)
 
 
 class _ClearLine:
@@ -87,6 +88,8 @@ class FlightApp:
         stderr: TextIO | None = sys.stderr,
         status_line: bool = False,
         perception_in_thread: bool = False,
+        judge: GateJudge | None = None,
+        confirm: preflight.Confirm | None = None,
     ) -> None:
         self.cfg = cfg
         self.link = link
@@ -97,6 +100,9 @@ class FlightApp:
         self.stderr = stderr
         self.status_line = status_line
         self.perception_in_thread = perception_in_thread
+        self.judge = judge  # ground truth (simulators only): scores the gates, never steers
+        self._verdict: str | None = None  # the normal end's outcome line (companion/app/outcome.py)
+        self.confirm = confirm  # asks the operator to confirm the pre-flight summary; None: do not ask
         self.clock = time.monotonic
         # With a live status line, a state message first clears the line it would otherwise append to.
         self._tty = bool(stderr is not None and getattr(stderr, "isatty", lambda: False)())
@@ -104,8 +110,7 @@ class FlightApp:
         self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=sm_err)
         self.ctrl = PNController.from_config(cfg)
         self.width, self.height = cfg.camera.width, cfg.camera.height
-        self.close_det = CloseDetector(cfg.app, self.width)
-        self.limits = SafetyLimits(cfg.safety)
+        self.engagement: Engagement | None = None  # made when the frame loop starts (the hover thrust is known)
         self.stats = FlightStats()
         self._fault: Abort | None = None
         self._seq: asyncio.Task[None] | None = None
@@ -197,6 +202,9 @@ class FlightApp:
             "exit_code": int(self.sm.outcome) if self.sm.outcome is not None else None,
             "detail": last.reason if last else "",
             "gates_passed": self.stats.gates_passed,
+            "passes": [g.as_dict() for g in self.engagement.passes] if self.engagement is not None else [],
+            "truth": self._truth_summary(),
+            "verdict": self._verdict,
             "frames": self.stats.frames,
             "setpoints": self.stats.setpoints,
             "frame_to_setpoint_ms": {"p50": float(np.percentile(lat, 50)) if lat.size else None,
@@ -204,6 +212,14 @@ class FlightApp:
             "cpu_percent": 100.0 * self.stats.cpu_s / self.stats.wall_s if self.stats.wall_s > 0 else None,
             "states": [h.dst.value for h in self.sm.history],
         }
+
+    def _truth_summary(self) -> dict[str, Any] | None:
+        """Each gate against ground truth (None in the field: no truth)."""
+        if self.judge is None or not self.judge.has_truth:
+            return None
+        gates = self.judge.results()
+        return {"gates": [g.as_dict() for g in gates], "through": sum(g.through for g in gates),
+                "missed": sum(g.crossed and not g.through for g in gates)}
 
     # ------------------------------------------------------------------------------ sequence
     async def _sequence(self) -> None:
@@ -221,6 +237,10 @@ class FlightApp:
             self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
         ref = cfg.safety.altitude_reference  # an app started in the air is told where the ground is
         self._baro0 = self._baro_raw() if ref is None else ref  # on the ground: the altitude floor is above this
+        not_confirmed = await preflight.run(self, self.confirm)  # summary + operator's yes before arming
+        self._check_fault()
+        if not_confirmed is not None:
+            raise _Tripped(Abort(Reason.NOT_CONFIRMED, not_confirmed))
         if cfg.app.start == "takeoff":
             self.sm.go(State.ARM, "preflight checks passed")
             await self.link.arm()
@@ -255,10 +275,13 @@ class FlightApp:
             await asyncio.sleep(0.1)
 
     async def _fly(self) -> None:
-        """The frame loop: ACQUIRE -> ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK -> LAND."""
-        app = self.cfg.app
-        acquire_start = self.clock()
-        streak = 0  # consecutive valid boxes
+        """The frame loop: each frame's box goes to the engagement core (companion/engagement.py), which
+        decides ACQUIRE -> ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK, or an abort; here only I/O:
+        camera, perception, the setpoint to PX4, the state machine and the log."""
+        p = self.ctrl.p
+        params = EngagementParams.from_config(self.cfg, hover_thrust=p.hover_thrust, f_min=p.guidance.f_min,
+                                              f_max=p.guidance.f_max)
+        self.engagement = eng = Engagement.from_config(self.cfg, self.ctrl, params)
         while True:
             self._check_fault()
             frame = await self.camera.read()
@@ -266,105 +289,74 @@ class FlightApp:
             box = await self._perceive(frame)
             self._check_fault()
             valid = box is not None and box.is_valid(self.width, self.height)
-            streak = streak + 1 if valid else 0
             self.stats.frames += 1
             self._log_detection(frame, box, valid)
-            st = self.sm.state
-            if st is State.ACQUIRE:
-                if streak >= app.acquire_frames:
-                    await self._engage(frame, box, t_avail, f"stable track for {streak} frames")
-                elif self.clock() - acquire_start > app.acquire_timeout:
-                    await self._land_normally(Reason.NO_TARGET,
-                                              f"no stable track within {app.acquire_timeout:.1f} s", State.LAND)
-                    return
-                continue
-            if st is State.RECOVER and self.clock() - self._recover_start >= app.recover_time:
-                # A next gate only when flying through gates: after a pull-up the target is still ahead.
-                if (app.next_gate and app.on_close == "fly_through" and streak >= app.acquire_frames
-                        and self.stats.gates_passed < app.max_gates):
-                    await self._engage(frame, box, t_avail, f"next gate tracked for {streak} frames")
-                    continue
-                done = ("pulled up before the target" if app.on_close == "pull_up"
-                        else f"{self.stats.gates_passed} gate(s) passed; no next gate")
-                await self._land_normally(Reason.OK, done, State.HANDBACK)
+            imu = self.link.imu  # the newest accelerometer sample (50 Hz) for the controller's closing speed
+            d = eng.step(frame.t, box, self._attitude_at(frame.t), self._baro_rel(),
+                         accel_frd=imu.accel_frd if imu is not None else None, t_now=t_avail)
+            if d.control is not None:
+                self._last_out = d.control
+            for ev in d.events:
+                self.log.event(ev)
+            self.stats.gates_passed = eng.passes_confirmed
+            if await self._apply(frame, d, t_avail):
                 return
-            await self._frame(frame, box, valid, t_avail)
-            if st is not State.RECOVER and self.sm.state is State.RECOVER:
-                streak = 0  # the next gate's track counts from here, not the passed gate's
+
+    async def _apply(self, frame: Frame, d: Decision, t_avail: float) -> bool:
+        """Carry out one decision; True when the flight's normal end has been reached."""
+        if d.phase is Phase.ACQUIRE:
+            return False  # PX4 holds; nothing to send
+        if d.phase is Phase.LAND:
+            await self._land_normally(Reason.NO_TARGET, d.why, State.LAND)
+            return True
+        if d.phase is Phase.HANDBACK:
+            reason, why = self._outcome(d)
+            await self._land_normally(reason, why, State.HANDBACK)
+            return True
+        if d.phase is Phase.ABORT:
+            assert d.reason is not None
+            raise _Tripped(Abort(d.reason, d.why))
+        assert d.setpoint is not None
+        first = d.previous is Phase.ACQUIRE
+        if d.changed:
+            self.sm.go(State(d.phase.value), d.why)
+            if d.phase is Phase.RECOVER:
+                reset = getattr(self.perception, "reset", None)
+                if reset is not None:
+                    reset()  # the tracker must not hold on to (or coast) the gate we just passed
+        self._hover_update(d.setpoint.thrust)
+        if first:
+            # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
+            # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
+            await self.link.start_offboard(d.setpoint)
+            self._check_fault()
+            self._last_setpoint = self.clock()
+            # Logged, but not a latency sample: it includes PX4's mode switch, once per flight.
+            self._log_control(frame, d, (self._last_setpoint - t_avail) * 1e3)
+            return False
+        await self.link.set_setpoint(d.setpoint)
+        t_sent = self.clock()
+        self._last_setpoint = t_sent
+        self.stats.setpoints += 1
+        lat_ms = (t_sent - t_avail) * 1e3
+        self.stats.latencies_ms.append(lat_ms)
+        self._log_control(frame, d, lat_ms)
+        return False
+
+    def _outcome(self, d: Decision) -> tuple[Reason, str]:
+        """The normal end's reason: what the engagement claimed, checked against ground truth where it exists."""
+        judge = self.judge
+        truth = judge.results() if judge is not None and judge.has_truth else None
+        reason, line = verdict(self.engagement.passes, truth)
+        self._verdict = line
+        self.log.event(f"outcome {reason.name}: {line}", "info" if reason is Reason.OK else "error")
+        return reason, f"{d.why}; {line}"
 
     def _attitude_at(self, t: float) -> np.ndarray:
         """PX4's attitude estimate (IMU; NED/FRD wxyz) at a frame's capture time, not at its processing
         time: the box must be rotated to the world with the attitude the camera had when it saw it."""
         q = self.link.attitude_history.at(t)
         return q if q is not None else self.link.attitude.q_wxyz
-
-    async def _frame(self, frame: Frame, box: Any, valid: bool, t_avail: float) -> None:
-        """One frame while we own the vehicle: controller, safety, pass detection, setpoint, log."""
-        st = self.sm.state
-        out = self.ctrl.step(frame.t, box, self._attitude_at(frame.t))
-        self._last_out = out
-        now = self.clock()
-        if out.mode == "pn":
-            self._last_valid = now
-        baro = self._baro_rel()
-        if st is State.ENGAGE:
-            abort = self.limits.check(now, self._engage_start, self._last_valid, baro)
-            if abort is not None:
-                raise _Tripped(abort)
-            est = self.close_det.update(frame.t, box, out.mode == "pn")
-            sp = out.setpoint
-            if est.close:
-                if self.cfg.app.on_close == "fly_through":
-                    self._pass_start, self._pass_sp, self._gone = now, self._level_flight(out.setpoint), 0
-                    self._pass_peak = max(box.w, box.h) if valid else 0.0
-                    self.sm.go(State.PASS, f"gate close: {est.why}")
-                else:
-                    self.stats.gates_passed += 1  # the intercept is over: brake and climb away before impact
-                    self._start_recover(f"pull-up: {est.why}", pull_up=True)
-                    sp = self._recover_sp
-        elif st is State.PASS:
-            sp = self._pass_sp  # hold the attitude that points at the gate until it is behind us
-            size = max(box.w, box.h) if valid else 0.0
-            # Gone: no box, or a box far smaller than the one we were passing (the next gate behind it).
-            self._gone = 0 if size > 0.5 * self._pass_peak else self._gone + 1
-            self._pass_peak = max(self._pass_peak, size)
-            if self._gone >= PASS_GONE_FRAMES or now - self._pass_start > self.cfg.app.pass_timeout:
-                self.stats.gates_passed += 1
-                why = "gate left the view" if self._gone >= PASS_GONE_FRAMES else "pass timeout"
-                self._start_recover(f"gate {self.stats.gates_passed} passed ({why})")
-                sp = self._recover_sp
-        else:  # RECOVER
-            sp = self._recover_sp
-        if baro is not None and baro < self.cfg.safety.altitude_floor and st is not State.ENGAGE:
-            raise _Tripped(Abort(Reason.ALTITUDE_FLOOR, f"barometric altitude {baro:.1f} m below the floor "
-                                 f"{self.cfg.safety.altitude_floor:.1f} m"))
-        self._hover_update(sp.thrust)
-        await self.link.set_setpoint(sp)
-        t_sent = self.clock()
-        self._last_setpoint = t_sent
-        self.stats.setpoints += 1
-        lat_ms = (t_sent - t_avail) * 1e3
-        self.stats.latencies_ms.append(lat_ms)
-        self._log_control(frame, out, sp, lat_ms)
-
-    async def _engage(self, frame: Frame, box: Any, t_avail: float, why: str) -> None:
-        first = self.sm.state is State.ACQUIRE
-        self.ctrl.reset()
-        self.close_det.reset()
-        self._engage_start = self._last_valid = self.clock()
-        self.sm.go(State.ENGAGE, why)
-        if first:
-            out = self.ctrl.step(frame.t, box, self._attitude_at(frame.t))
-            # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
-            # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
-            self._hover_update(out.setpoint.thrust)
-            await self.link.start_offboard(out.setpoint)
-            self._check_fault()
-            self._last_setpoint = self.clock()
-            # Logged, but not a latency sample: it includes PX4's mode switch, once per flight.
-            self._log_control(frame, out, out.setpoint, (self._last_setpoint - t_avail) * 1e3)
-        else:
-            await self._frame(frame, box, True, t_avail)
 
     def _hover_update(self, thrust: float) -> None:
         """hover.estimate: the IMU's specific force against the thrust we commanded since the last setpoint
@@ -377,7 +369,8 @@ class FlightApp:
         if imu is not None and self._hover_u is not None:
             e = h.update(imu.t_rx, self._hover_u, -float(imu.accel_frd[2]))  # FRD: the thrust axis is -z
             if e is not None:
-                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight)
+                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight,
+                                 getattr(self, "engagement", None))  # the pass and recovery too
                 self.log.write("hover", u_cmd=self._hover_u, a_up=-float(imu.accel_frd[2]),
                                hover_thrust=e.hover_thrust, std=e.std, samples=e.samples)
                 if self._hover_logged is None or abs(e.hover_thrust - self._hover_logged) > 0.01:
@@ -385,32 +378,6 @@ class FlightApp:
                     self.log.event(f"hover thrust {e.hover_thrust:.3f} estimated from the IMU ({e.samples} samples, "
                                    f"std {e.std:.3f}; started from {h.hover0:.3f})")
         self._hover_u = thrust
-
-    def _level_flight(self, sp: Setpoint) -> Setpoint:
-        """The same attitude with the thrust whose vertical part carries the weight (no climb, no sink).
-
-        Close to the gate the box fills the image and the LOS rate is meaningless, so the last PN
-        thrust (often a large dive or climb demand) must not be held through the gate.
-        """
-        tilt = float(sp.R_ned_frd[2, 2])  # cos(roll) cos(pitch): the thrust axis' vertical part
-        thrust = self.ctrl.p.hover_thrust / max(tilt, 0.5)
-        return Setpoint(sp.roll_deg, sp.pitch_deg, sp.yaw_deg, min(1.0, max(self.ctrl.p.thrust_min, thrust)),
-                        sp.R_ned_frd)
-
-    def _start_recover(self, why: str, pull_up: bool = False) -> None:
-        yaw = euler_ned_deg_from_R(self.link.attitude.R_ned_frd)[2]
-        thrust = min(1.0, self.ctrl.p.hover_thrust * self.cfg.app.recover_thrust_scale)
-        self._recover_sp = hover_setpoint(yaw, thrust)
-        if pull_up:
-            # Nose up: the thrust tilts backwards (brakes); its vertical part still carries scale x weight.
-            pitch = self.cfg.app.pull_up_pitch
-            R = R_from_euler_ned_deg(0.0, pitch, yaw)
-            self._recover_sp = Setpoint(0.0, pitch, yaw, min(1.0, thrust / math.cos(math.radians(pitch))), R)
-        self._recover_start = self.clock()
-        reset = getattr(self.perception, "reset", None)
-        if reset is not None:
-            reset()  # the tracker must not hold on to (or coast) the gate we just passed
-        self.sm.go(State.RECOVER, why)
 
     async def _land_normally(self, reason: Reason, why: str, via: State) -> None:
         pilot = self.cfg.app.start == "pilot"  # the pilot took off, the pilot lands
@@ -420,7 +387,7 @@ class FlightApp:
             await self.link.stop_offboard()
             self._check_fault()
             if pilot:
-                self.sm.go(State.SAFE_HOLD, "PX4 holds; the pilot lands", reason)
+                self.sm.go(State.SAFE_HOLD, "PX4 holds; the pilot lands" + self._verdict_tail(reason), reason)
                 return
             why = "PX4 holds; landing"
         elif pilot:
@@ -431,7 +398,11 @@ class FlightApp:
         self._check_fault()
         await self.link.wait_landed_and_disarm()
         self._check_fault()
-        self.sm.go(State.SAFE_LANDED, "landed and disarmed", reason)
+        self.sm.go(State.SAFE_LANDED, "landed and disarmed" + self._verdict_tail(reason), reason)
+
+    def _verdict_tail(self, reason: Reason) -> str:
+        """A normal end that is not what was claimed says why, on the final line (stderr, log, summary)."""
+        return f"; {self._verdict}" if reason in (Reason.GATE_MISSED, Reason.PASS_NOT_CONFIRMED) else ""
 
     async def _perceive(self, frame: Frame) -> Any:
         if self.perception_in_thread:
@@ -608,13 +579,19 @@ class FlightApp:
             self.log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
                            h=box.h, confidence=box.confidence, valid=valid)
 
-    def _log_control(self, frame: Frame, out: ControlOutput, sp: Setpoint, lat_ms: float) -> None:
+    def _log_control(self, frame: Frame, d: Decision, lat_ms: float) -> None:
         t_frame = frame.t - self.log.t0
-        los = out.los_ned if out.los_ned is not None else (None, None, None)
-        self.log.write("los", t_frame=t_frame, los_n=los[0], los_e=los[1], los_d=los[2],
-                       lambda_dot=out.lambda_dot, a_n=float(np.linalg.norm(out.a_n)),
-                       demand_scale=out.demand_scale, rejected=out.rejected or "")
-        self.log.write("setpoints", t_frame=t_frame, state=self.sm.state.value, ctrl_mode=out.mode,
+        out: ControlOutput | None = d.control  # type: ignore[assignment]
+        if out is not None:  # the controller ran (ENGAGE): its LOS and demand
+            los = out.los_ned if out.los_ned is not None else (None, None, None)
+            self.log.write("los", t_frame=t_frame, los_n=los[0], los_e=los[1], los_d=los[2],
+                           lambda_dot=out.lambda_dot, a_n=float(np.linalg.norm(out.a_n)),
+                           demand_scale=out.demand_scale, rejected=out.rejected or "")
+        sp = d.setpoint
+        assert sp is not None
+        # ctrl_mode: the controller's mode in ENGAGE; "pass" (straight) / "recover" (level) otherwise.
+        mode = out.mode if out is not None and d.phase is Phase.ENGAGE else d.phase.value.lower()
+        self.log.write("setpoints", t_frame=t_frame, state=self.sm.state.value, ctrl_mode=mode,
                        roll_deg=sp.roll_deg, pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg, thrust=sp.thrust,
                        latency_ms=lat_ms)
 
@@ -640,15 +617,21 @@ class FlightApp:
         if truth is not None:
             pn, vn = truth.position_ned, truth.velocity_ned
             self.log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
+            if self.judge is not None:
+                self.judge.vehicle(truth.t_rx, pn)
 
 
-def gate_logger(log: FlightLog) -> Callable[[int, Any, np.ndarray, float, bool], None]:
-    """Callback for the synthetic camera: log each virtual gate (scene ENU -> NED). Scoring only."""
+def gate_logger(log: FlightLog, judge: GateJudge | None = None,
+                clock: Callable[[], float] = time.monotonic) -> Callable[[int, Any, np.ndarray, float, bool], None]:
+    """Callback for the synthetic camera: log each virtual gate (scene ENU -> NED), and hand it to the
+    judge (on the monotonic clock of the link's truth samples). Scoring only."""
     from companion.frames import enu_to_ned
 
     def on_gate(k: int, gate: Any, c_enu: np.ndarray, radius: float, visible: bool) -> None:
         c, n = enu_to_ned(c_enu), enu_to_ned(gate.normal)
         log.write("gate", k=k, gate_n=c[0], gate_e=c[1], gate_d=c[2], normal_n=n[0], normal_e=n[1],
                   normal_d=n[2], radius=radius, visible=visible)
+        if judge is not None:
+            judge.gate(clock(), k, c, n, radius)
 
     return on_gate

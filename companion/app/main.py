@@ -35,7 +35,11 @@ def register(subparsers: Any) -> None:
     codes = "\n".join(f"  {r.value:3d}  {r.name}" for r in Reason)
     p = subparsers.add_parser("fly", help="fly through gates: connect, take off, engage, pass, land (logs the flight)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                              epilog=f"exit codes (the flight's outcome):\n{codes}")
+                              epilog=f"exit codes (the flight's outcome):\n{codes}\n"
+                              "GATE_MISSED: ground truth (simulated PX4, PX4 SITL) says a gate's plane was crossed\n"
+                              "  outside its radius, or fewer gates were flown through than passes claimed.\n"
+                              "PASS_NOT_CONFIRMED: no ground truth (the field) and a pass ended on app.pass_timeout\n"
+                              "  without evidence that the gate went behind.")
     add_config_arguments(p)
     p.add_argument("--url", help="mavsdk connection URL (overrides link.url)")
     p.add_argument("--synthetic", action="store_true",
@@ -48,6 +52,8 @@ def register(subparsers: Any) -> None:
     from companion.app.record import add_record_arguments
 
     add_record_arguments(p)
+    p.add_argument("--yes", "-y", action="store_true",
+                   help="do not ask to confirm the pre-flight summary before arming (it is still printed and logged)")
     p.add_argument("--shadow", action="store_true",
                    help="shadow mode: the whole pipeline beside the pilot; setpoints logged and plotted, never sent "
                         "(no arming, no mode change, no offboard)")
@@ -78,6 +84,13 @@ def _overrides(args: argparse.Namespace) -> list[str]:
     return ov
 
 
+class StartRefused(RuntimeError):
+    """The flight cannot start (vehicle locked by another app, flight log unusable): one line, exit 2.
+
+    Raised before the app connects, so nothing has been commanded.
+    """
+
+
 def _cmd_fly(args: argparse.Namespace) -> int:
     from companion.app.record import is_recording, record_kwargs
     from companion.config import load_config
@@ -93,10 +106,68 @@ def _cmd_fly(args: argparse.Namespace) -> int:
                                              record_kw=record_kwargs(args)))
         print(f"companion: shadow log {folder}", file=sys.stderr)
         return code
-    reason, folder, _ = asyncio.run(fly(cfg, status_line=args.status, plot=not args.no_plot, record=args.record,
-                                        record_kw=record_kwargs(args)))
+    from companion.app.preflight import stdin_confirm
+
+    try:
+        reason, folder, _ = run_flight_process(fly(cfg, status_line=args.status, plot=not args.no_plot,
+                                                   record=args.record, record_kw=record_kwargs(args),
+                                                   confirm=None if args.yes else stdin_confirm))
+    except StartRefused as e:
+        print(f"companion fly: {e}", file=sys.stderr)
+        return 2
     print(f"companion: flight log {folder}", file=sys.stderr)
-    return int(reason)
+    return exit_when_done(int(reason))
+
+
+def run_flight_process(main: Awaitable[Any], executor_grace: float = 2.0) -> Any:
+    """``asyncio.run`` for the CLI, without waiting forever for a hung worker thread.
+
+    asyncio.run() joins the default executor's threads at the end (Python 3.11: without a timeout),
+    and a detector call that never returns (a hung driver, a wedged model) would keep the process
+    alive long after the flight reached its safe state. Here the workers get ``executor_grace``
+    seconds; ``exit_when_done`` handles one that is still stuck.
+    """
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    executor = ThreadPoolExecutor(thread_name_prefix="companion-worker")
+    loop = asyncio.new_event_loop()
+    loop.set_default_executor(executor)
+    try:
+        asyncio.set_event_loop(loop)
+        return loop.run_until_complete(main)
+    finally:
+        try:
+            tasks = asyncio.all_tasks(loop)
+            for task in tasks:
+                task.cancel()
+            loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+            loop.run_until_complete(loop.shutdown_asyncgens())
+        finally:
+            executor.shutdown(wait=False, cancel_futures=True)
+            deadline = time.monotonic() + executor_grace
+            for t in threading.enumerate():
+                if t.name.startswith("companion-worker"):
+                    t.join(max(0.0, deadline - time.monotonic()))
+            asyncio.set_event_loop(None)
+            loop.close()
+
+
+def exit_when_done(code: int) -> int:
+    """The flight is over and its log closed: if a worker thread still runs (a hung detector call), end the
+    process now with the flight's exit code instead of waiting for it at interpreter exit forever."""
+    import threading
+
+    stuck = [t.name for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon
+             and t.is_alive()]
+    if not stuck:
+        return code
+    print(f"companion: worker thread(s) {', '.join(stuck)} still running after the safe end: exiting anyway "
+          f"(exit {code})", file=sys.stderr)
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(code)
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
@@ -110,13 +181,30 @@ def _cmd_plot(args: argparse.Namespace) -> int:
             print(f"companion log plot: {folder}: no flight log here", file=sys.stderr)
             return 1
         folder = latest
-    out = plot_flight(folder, args.output)
+    try:
+        out = plot_flight(folder, args.output)
+    except Exception as e:  # a corrupt or foreign file in the folder: one line, never a traceback
+        text = " ".join(str(e).split())[:200]
+        print(f"companion log plot: {folder}: cannot plot ({type(e).__name__}: {text})", file=sys.stderr)
+        return 1
     print(out)
     return 0
 
 
-def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
-    """(camera source, perception, run perception in a thread) for the configured camera."""
+def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+    """(camera source, perception, run perception in a thread) for the configured camera; the synthetic
+    camera's gates go to the log and to ``judge`` (companion/app/outcome.py, ground truth).
+
+    Every source is wrapped in CheckedCamera: each frame is checked for plausibility (size, type,
+    timestamps, frozen content) before perception sees it.
+    """
+    from companion.app.camera import CheckedCamera
+
+    cam, perception, in_thread = _build_camera(cfg, link, log, judge)
+    return CheckedCamera.from_config(cam, cfg), perception, in_thread
+
+
+def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
     from companion.app.flight import gate_logger
     from companion.app.synthcam import SyntheticCamera, VehiclePose
 
@@ -135,7 +223,7 @@ def build_camera(cfg: Config, link: Any, log: Any) -> tuple[Any, Any, bool]:
                 return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
             return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
 
-        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log))
+        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log, judge))
         if cam.render == "geometric":
             return cam, cam.perception(), False
         from perception.pipeline import Pipeline
@@ -157,19 +245,53 @@ async def fly(
     alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
     record: str | Path | None = None,
     record_kw: dict[str, Any] | None = None,
+    confirm: Callable[[str], Awaitable[bool]] | None = None,
 ) -> tuple[Reason, Path, dict[str, Any]]:
     """One flight, start to safe state. Returns (outcome, flight folder, summary).
 
     ``alongside(app)`` runs next to the flight and is cancelled when it ends (tests inject faults with it).
     """
+    from companion.app.vehiclelock import VehicleBusy, VehicleLock
+
+    # One app per vehicle, held until the link is closed (then nothing of ours commands it any more).
+    lock = VehicleLock(cfg.link.url)
+    try:
+        lock.acquire()
+    except VehicleBusy as e:
+        raise StartRefused(str(e)) from None
+    try:
+        return await _fly_locked(cfg, status_line=status_line, plot=plot, stderr=stderr,
+                                 handle_signals=handle_signals, alongside=alongside, record=record,
+                                 record_kw=record_kw, confirm=confirm)
+    finally:
+        lock.release()
+
+
+async def _fly_locked(
+    cfg: Config,
+    *,
+    status_line: bool,
+    plot: bool,
+    stderr: Any,
+    handle_signals: bool,
+    alongside: Callable[[FlightApp], Awaitable[None]] | None,
+    record: str | Path | None,
+    record_kw: dict[str, Any] | None,
+    confirm: Callable[[str], Awaitable[bool]] | None = None,
+) -> tuple[Reason, Path, dict[str, Any]]:
     from companion.app.flight import FlightApp
     from companion.app.link import VehicleLink
     from companion.app.notify import Notifier
+    from companion.app.outcome import GateJudge
     from companion.app.states import Reason
     from companion.config import config_as_dict
-    from companion.flightlog import FlightLog
+    from companion.flightlog import FlightLog, FlightLogError
 
-    log = FlightLog.create(cfg.log.directory, config_as_dict(cfg), flush_interval=cfg.log.flush_interval)
+    try:  # refused before connecting: a flight without its log is not flown
+        log = FlightLog.create(cfg.log.directory, config_as_dict(cfg), min_free_mb=cfg.log.min_free_mb,
+                               flush_interval=cfg.log.flush_interval, stderr=stderr)
+    except FlightLogError as e:
+        raise StartRefused(f"cannot start the flight log: {e}") from None
     print(f"companion: logging to {log.folder}", file=stderr, flush=True)
     notifier = Notifier()
     app: FlightApp | None = None
@@ -180,14 +302,16 @@ async def fly(
         from companion.px4sitl.truth import attach_truth
 
         truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
-        camera, perception, in_thread = build_camera(cfg, link, log)
+        judge = GateJudge()  # ground truth, where a simulator provides it: scores the gates, never steers
+        camera, perception, in_thread = build_camera(cfg, link, log, judge)
         if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
 
             camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
                                      link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
-                        status_line=status_line, perception_in_thread=in_thread)
+                        status_line=status_line, perception_in_thread=in_thread, judge=judge,
+                        confirm=confirm)
         loop = asyncio.get_running_loop()
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
@@ -200,12 +324,15 @@ async def fly(
                 side.cancel()
                 await asyncio.gather(side, return_exceptions=True)
         summary = app.summary()
-    except Exception as e:  # (set-up failed before the state machine ran)
-        reason = Reason.CAMERA_FAILED if app is None else Reason.EXCEPTION
-        summary = {"outcome": "ABORT_NOT_ARMED", "reason": reason.name, "exit_code": int(reason),
-                   "detail": f"{type(e).__name__}: {e}"}
-        log.state("INIT", "ABORT_NOT_ARMED", summary["detail"])
-        print(f"companion: set-up failed: {summary['detail']}", file=stderr, flush=True)
+    except Exception as e:
+        if app is None:  # set-up failed before the state machine ran: nothing connected, nothing armed
+            reason = Reason.CAMERA_FAILED
+            summary = {"outcome": "ABORT_NOT_ARMED", "reason": reason.name, "exit_code": int(reason),
+                       "detail": f"{type(e).__name__}: {e}"}
+            log.state("INIT", "ABORT_NOT_ARMED", summary["detail"])
+            print(f"companion: set-up failed: {summary['detail']}", file=stderr, flush=True)
+        else:
+            reason, summary = await _escaped(app, link, e, stderr)
     finally:
         if handle_signals:
             loop = asyncio.get_running_loop()
@@ -225,6 +352,31 @@ async def fly(
         except Exception as e:  # (a plot must never change the flight's outcome)
             print(f"companion: plot failed: {type(e).__name__}: {e}", file=stderr)
     return reason, log.folder, summary
+
+
+async def _escaped(app: FlightApp, link: Any, err: Exception, stderr: Any) -> tuple[Reason, dict[str, Any]]:
+    """An exception got out of the state machine (a bug): record only what is true of the vehicle.
+
+    If the machine already reached its safe state, that stands. Otherwise streaming is stopped
+    (closing the link ends MAVSDK's resending, so PX4's offboard-loss failsafe acts once we
+    commanded it) and the state named is the one that is true then: not armed on the ground,
+    PX4's own failsafe in the air.
+    """
+    from companion.app.flight import GROUND_STATES
+    from companion.app.states import Reason, State
+
+    detail = f"{type(err).__name__}: {err}"
+    print(f"companion: flight logic failed: {detail}", file=stderr, flush=True)
+    if not app.sm.done:
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(link.close(), 10.0)
+        dst = State.ABORT_NOT_ARMED if app.sm.state in GROUND_STATES else State.SAFE_FAILSAFE_LINK
+        with contextlib.suppress(Exception):
+            app.sm.go(dst, f"{detail}; streaming stopped", Reason.EXCEPTION)
+    summary = app.summary()
+    summary.setdefault("error", detail)
+    reason = app.sm.outcome if app.sm.outcome is not None else Reason.EXCEPTION
+    return reason, summary
 
 
 # ---------------------------------------------------------------------------- simulated PX4 process
@@ -335,10 +487,14 @@ def run_sim(args: argparse.Namespace) -> int:
     with SimPX4Process(args.config, [o for o in ov if o.startswith(("sim.", "airframe."))]) as px4:
         print(f"companion sim: simulated PX4 on 127.0.0.1:{px4.port} (pid {px4.proc.pid})", file=sys.stderr)
         cfg = load_config(args.config, [*ov, f"link.url={px4.url}"])
-        reason, folder, summary = asyncio.run(fly(cfg, status_line=not getattr(args, "no_status", False),
-                                                  plot=not getattr(args, "no_plot", False)))
+        try:
+            reason, folder, summary = run_flight_process(fly(cfg, status_line=not getattr(args, "no_status", False),
+                                                             plot=not getattr(args, "no_plot", False)))
+        except StartRefused as e:
+            print(f"companion sim: {e}", file=sys.stderr)
+            return 2
     print_flight_report(folder, summary)
-    return int(reason)
+    return exit_when_done(int(reason))
 
 
 def print_flight_report(folder: Path, summary: dict[str, Any]) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 
 
 class Notifier:
@@ -20,7 +21,11 @@ class Notifier:
         if addr.startswith("@"):  # abstract namespace socket
             addr = "\0" + addr[1:]
         elif not addr.startswith("/"):
-            raise ValueError(f"NOTIFY_SOCKET={addr!r}: expected an absolute path or @abstract name")
+            # systemd only ever sets an absolute path or @name: anything else is a broken environment.
+            # Notifications are a convenience, never a reason not to fly (or to crash): warn and go on.
+            print(f"companion: NOTIFY_SOCKET={addr[:80]!r} is neither an absolute path nor @name: "
+                  "systemd notifications off", file=sys.stderr)
+            return
         self.address = addr
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
 

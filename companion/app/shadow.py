@@ -74,7 +74,11 @@ async def shadow(
             loop.add_signal_handler(sig, stop.set)
     session = _Session(cfg, ro, log, stderr)
     reason, detail = Reason.OK, "shadow session ended"
+    truth = None
     try:
+        from companion.px4sitl.truth import attach_truth
+
+        truth = attach_truth(cfg, link)  # PX4 SIH's true pose for a synthetic camera (px4.truth_url), never control
         log.state("INIT", "CONNECT", f"connecting to {cfg.link.url} (shadow: read-only)")
         await ro.connect()
         await ro.wait_link_ok(cfg.link.connect_timeout)
@@ -105,6 +109,8 @@ async def shadow(
                 session.camera.close()
         with contextlib.suppress(Exception):
             await asyncio.wait_for(link.close(), 10.0)
+        if truth is not None:
+            truth.close()
     log.state(SHADOW_STATE if session.started else "CONNECT", "SHADOW_END", detail)
     summary = session.summary(reason, detail)
     log.close(summary)

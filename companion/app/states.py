@@ -73,6 +73,10 @@ class Reason(enum.IntEnum):
     EXCEPTION = 22
     SIGNAL = 23  # SIGTERM / SIGINT: orderly hand-over
     CAMERA_FAILED = 24
+    NOT_CONFIRMED = 25  # the operator did not confirm the pre-flight summary (companion/app/preflight.py)
+    # The flight ended normally but not as claimed (companion/app/outcome.py):
+    GATE_MISSED = 30  # ground truth: a gate plane crossed outside the radius, or fewer gates than passes claimed
+    PASS_NOT_CONFIRMED = 31  # no ground truth: a pass ended on its timeout, without evidence the gate is behind
 
 
 _NORMAL: dict[State, frozenset[State]] = {

@@ -33,6 +33,9 @@ if TYPE_CHECKING:
     from companion.config import Config
 
 
+SENSOR_NOISE = 1.5  # grey levels (std) on rendered frames; the detector trained with 0..8
+
+
 @dataclass(frozen=True)
 class VehiclePose:
     """Pose for sensor simulation: position NED (m) and attitude NED/FRD quaternion (wxyz)."""
@@ -151,6 +154,9 @@ class SyntheticCamera:
         self._background: np.ndarray | None = None
         self.faults = FaultInjector(cfg.app.synthetic.fault, cfg.app.synthetic.fault_after, self.model.width)
         self.closed = False
+        self._last: Frame | None = None
+        self._noise: list[np.ndarray] | None = None
+        self._noise_k = 0
 
     def perception(self, pipeline: Any | None = None) -> Perception:
         inner: Perception = GeometricPerception() if self.render == "geometric" else PipelinePerception(pipeline)
@@ -167,6 +173,10 @@ class SyntheticCamera:
         t = self.clock()
         if self.cfg.app.synthetic.fault == "stall" and self.faults.active(t):
             await asyncio.Event().wait()  # a camera driver that hangs: no frame ever again
+        if self.cfg.app.synthetic.fault == "freeze" and self._last is not None and self.faults.active(t):
+            # A driver that re-sends its last buffer: the same picture, a fresh index and timestamp.
+            self.index += 1
+            return Frame(self.index, t, self._last.image, self._last.box, self._last.truth_box)
         pose = self.pose()
         while pose is None:  # no pose yet (telemetry just started): wait a tick
             await asyncio.sleep(self.period)
@@ -182,6 +192,7 @@ class SyntheticCamera:
             frame = await asyncio.get_running_loop().run_in_executor(None, self.capture, t, pose)
         else:
             frame = self.capture(t, pose)
+        self._last = frame
         return frame
 
     def capture(self, t: float, pose: VehiclePose) -> Frame:
@@ -222,8 +233,21 @@ class SyntheticCamera:
                                                TRAIN_STYLE)
         R_enu_cam = R_enu_flu @ F_FRD_FLU @ self.model.R_body_cam
         gate = None if best is None else Gate(best[2], best[1].normal, self.scene.radius if self.scene else 1.0)
-        return render_gate_frame(cam, R_enu_cam, p_enu, gate, style=None, rng=self.rng,
-                                 background=self._background, t=t)
+        image, truth = render_gate_frame(cam, R_enu_cam, p_enu, gate, style=None, rng=self.rng,
+                                         background=self._background, t=t)
+        return self._sensor_noise(image), truth
+
+    def _sensor_noise(self, image: np.ndarray) -> np.ndarray:
+        """A real sensor's frames are never identical, even of a static view; the clean render is (the
+        background does not move with the attitude). Without noise an empty view would look like a frozen
+        camera to perception/plausibility.py. A few seeded noise frames in turn: cheap, deterministic."""
+        import cv2
+
+        if self._noise is None or self._noise[0].shape != image.shape:
+            rng = np.random.default_rng(self.cfg.sim.seed + 2)
+            self._noise = [rng.normal(0.0, SENSOR_NOISE, image.shape).round().astype(np.int16) for _ in range(4)]
+        self._noise_k = (self._noise_k + 1) % len(self._noise)
+        return cv2.add(image, self._noise[self._noise_k], dtype=cv2.CV_8U)
 
     def close(self) -> None:
         self.closed = True

@@ -83,7 +83,8 @@ def score_flight(folder: Path, radii: list[float]) -> dict[str, Any]:
         osc = oscillation(sp["t"], sp["roll_deg"])
         tilt = max_tilt_deg(sp["roll_deg"], sp["pitch_deg"])
     reason = str(s.get("reason") or "killed").lower()
-    end = None if crossed else ("no_engage" if t_engage is None else reason)
+    # Not crossed although the app ended normally: it took a pass that the truth does not confirm.
+    end = None if crossed else ("no_engage" if t_engage is None else "no_crossing" if reason == "ok" else reason)
     lat = s.get("frame_to_setpoint_ms") or {}
     return {
         "crossed": crossed, "t_gate_s": (first.t - t_engage) if crossed else None, "d_center_m": d,
@@ -213,6 +214,7 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
     from companion.app.main import fly
     from companion.config import load_config
     from companion.px4sitl.launcher import PX4Sitl, px4_params
+    from companion.px4sitl.run import record_px4
 
     # mavsdk and PX4 talk on stdout: one log file per worker keeps the progress bar readable.
     log = open(Path(out_dir) / f"worker{wid}.log", "a", buffering=1)  # noqa: SIM115 (the worker's lifetime)
@@ -253,6 +255,7 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
                 cfg = load_config(files, ov)
                 print(f"run {job.index}: {job.group} on instance {px4.instance}", file=log)
                 _, folder, _ = asyncio.run(fly(cfg, plot=False, stderr=log, handle_signals=False))
+                record_px4(folder, px4)  # PX4's ULog of this worker's flights, beside ours
                 res = {**job.group, **score_flight(folder, radii), "reposition_s": t_repos,
                        "instance": px4.instance, "wall_s": time.monotonic() - t0}
             except Exception as e:  # (a harness failure is one failed run, with its reason; PX4 restarts)

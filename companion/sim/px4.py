@@ -939,6 +939,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-noise", action="store_true", help="perfect sensors")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
+    for opt, port in (("--port", args.port), ("--remote-port", args.remote_port)):
+        if port is not None and not 0 <= port <= 65535:
+            print(f"companion.sim.px4: {opt} {port}: not a UDP port (0..65535)", file=sys.stderr)
+            return 2
     try:
         cfg = config_from_args(args)
         px4_params = {}

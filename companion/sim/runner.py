@@ -154,10 +154,12 @@ class _Steering:
         else:
             self.ctrl.reset()
 
-    def step(self, t: float, box: Any, q: np.ndarray) -> Any:
+    def step(self, t: float, box: Any, q: np.ndarray, accel_frd: np.ndarray | None = None,
+             t_now: float | None = None) -> Any:
         if self.kind == "pn":
-            acc, now = self.imu if self.imu is not None else (None, None)
-            return self.ctrl.step(t, box, q, acc, now)
+            if accel_frd is None and t_now is None and self.imu is not None:
+                accel_frd, t_now = self.imu
+            return self.ctrl.step(t, box, q, accel_frd, t_now)
         assert self.truth is not None
         p, v, g, gv = self.truth
         if self.kind == "pn_true_vrel":
@@ -309,7 +311,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             else:
                 # Barometric altitude above the ground with the run's baro offset (its white noise, 0.1 m,
                 # is irrelevant to the floor and would shift the attitude-noise stream).
-                d = eng.step(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias)
+                d = eng.step(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, (), *steer.imu)
                 sp, mode = d.setpoint, d.phase.value
                 last_out = d.control if d.control is not None else last_out
                 if d.phase.done:
@@ -347,7 +349,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             est, imu = hover
             acc = imu.imu(quad.specific_force_body(), quad.state.omega).accel  # FLU: z is the thrust axis
             if est.update(t + dt, thrust_cmd, float(acc[2])) is not None:
-                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight)
+                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight, eng)
         k += 1
     if crossing is not None:
         outcome = crossing  # ground truth scores the run, whatever the engagement did after

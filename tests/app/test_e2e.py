@@ -34,6 +34,10 @@ def test_fly_through_moving_gate_end_to_end(sim, tmp_path):
                               "HANDBACK", "LAND", "SAFE_LANDED"]
     assert f.summary["outcome"] == "SAFE_LANDED" and f.summary["exit_code"] == 0
     assert f.config["app"]["synthetic"]["motion"] == "linear_fast"
+    # The outcome from ground truth: the gate flown through, the camera's pass confirmed.
+    assert f.summary["truth"]["through"] == 1 and f.summary["truth"]["gates"][0]["through"]
+    assert [p["status"] for p in f.summary["passes"]] == ["confirmed"] and f.summary["gates_passed"] == 1
+    assert f.summary["verdict"] == "ground truth: 1 gate(s) flown through"
 
     # Each step in the telemetry PX4 reported: armed, its own take-off, OFFBOARD while we flew, HOLD, LAND.
     tel = f["telemetry"]

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.timeout(120)
 def _start_fly(tmp_path: Path, url: str, env: dict[str, str] | None = None,
                extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, Path]:
     logdir = tmp_path / "flights"
-    cmd = [sys.executable, "-m", "companion.cli", "fly", "--url", url, "--log-dir", str(logdir), "--no-plot"]
+    cmd = [sys.executable, "-m", "companion.cli", "fly", "--yes", "--url", url, "--log-dir", str(logdir), "--no-plot"]
     for o in (*BASE_OVERRIDES, *extra):
         cmd += ["--set", o]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,

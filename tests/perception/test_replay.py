@@ -174,3 +174,21 @@ def test_attitude_from_a_flight_folder(tmp_path: Path) -> None:
     assert yaw == pytest.approx(22.5, abs=1e-6)  # slerp halfway between 20 and 25 deg
     _, _, yaw_end = euler_ned_deg_from_R(R_from_quat_wxyz(track.at(5.0)))
     assert yaw_end == pytest.approx(50.0, abs=1e-6)  # held after the last sample
+
+
+def test_replay_runs_the_engagement_core(tmp_path: Path) -> None:
+    """The app's decisions on the recorded frames: PX4 holds (no setpoint) until a stable track, then ENGAGE
+    with the setpoint the app would have sent."""
+    from companion.replay import replay
+
+    video = tmp_path / "clip.avi"
+    _write_video(video, moving=False)
+    s = replay(video, load_config(), out=tmp_path / "out", progress=False)
+    rows = _read_csv(tmp_path / "out" / "replay.csv")
+    states = [r["state"] for r in rows]
+    first = states.index("ENGAGE")
+    assert set(states[:first]) == {"ACQUIRE"} and all(r["app_thrust"] == "" for r in rows[:first])
+    assert set(states[first:]) == {"ENGAGE"} and all(0.0 < float(r["app_thrust"]) <= 1.0 for r in rows[first:])
+    assert rows[first]["app_event"].startswith("gate 1 engaged; stable track for")
+    assert first >= load_config().app.acquire_frames - 1
+    assert s["engagement"]["state"] == "ENGAGE" and s["engagement"]["passes"][0]["status"] == "engaged"

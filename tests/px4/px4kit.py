@@ -72,7 +72,7 @@ class Px4Bench:
 
 def app_command(px4: PX4Sitl, log_dir: Path, *overrides: str) -> list[str]:
     """``companion fly`` with the synthetic camera (geometric box) against this PX4, SIH truth for the score."""
-    cmd = [sys.executable, "-m", "companion.cli", "fly", "--synthetic", "--geometric", "--no-plot",
+    cmd = [sys.executable, "-m", "companion.cli", "fly", "--yes", "--synthetic", "--geometric", "--no-plot",
            "--log-dir", str(log_dir)]
     for o in [*px4.config_overrides(), *overrides]:
         cmd += ["--set", o]

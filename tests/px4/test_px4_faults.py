@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from px4kit import finish, flight_folder, start_app, states, wait_state
 
-from companion.flightlog import read_flight
+from companion.flightlog import read_flight, read_table
 from companion.px4sitl.launcher import PX4Sitl
 from companion.px4sitl.truth import SihTruth
 
@@ -30,8 +30,15 @@ def test_sigkill_mid_engagement_px4_failsafe_and_log_intact(px4: PX4Sitl, log_di
                      "app.takeoff_altitude=6")
     folder = flight_folder(log_dir)
     wait_state(folder, "ENGAGE", proc, timeout=120)
+    deadline = time.monotonic() + 10.0
+    while px4.status().nav_mode != "Offboard":  # PX4 switches 0.2-1 s after the app asked
+        assert time.monotonic() < deadline and proc.poll() is None, f"PX4 never in Offboard: {px4.status()}"
+        time.sleep(0.1)
+    # Mid-engagement: the app has been commanding for a while (its setpoints reached the log's file).
+    while len(read_table(folder / "setpoints.csv")) < 5:
+        assert time.monotonic() < deadline + 10.0 and proc.poll() is None, "no setpoints logged"
+        time.sleep(0.1)
     time.sleep(1.0)
-    assert px4.status().nav_mode == "Offboard"
     os.kill(proc.pid, signal.SIGKILL)
     t_kill = time.monotonic()
     proc.communicate(timeout=10)
@@ -53,7 +60,8 @@ def test_sigkill_mid_engagement_px4_failsafe_and_log_intact(px4: PX4Sitl, log_di
     for topic in ("setpoints", "telemetry", "truth", "gate"):
         tab = f[topic]
         assert tab.truncated_rows <= 1, topic
-        assert len(tab) > 0 and tab["t"][-1] > t_kill_flight - 1.0, (topic, tab["t"][-1], t_kill_flight)
+        assert len(tab) > 0, topic
+        assert tab["t"][-1] > t_kill_flight - 1.0, (topic, tab["t"][-1], t_kill_flight)
     assert set(f["setpoints"]["state"]) >= {"ENGAGE"}
 
 
