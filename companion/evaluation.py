@@ -349,7 +349,8 @@ def run_reward(run: dict, reward: str) -> float:
 
 
 def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str = "dt", runs_per_motion: int = 2,
-         seed: int = 0, n_jobs: int = 2, progress: bool = True, confirm_top: int = 3, confirm_runs: int = 4) -> dict:
+         seed: int = 0, n_jobs: int = 2, progress: bool = True, confirm_top: int = 3, confirm_runs: int = 4,
+         protocol: str = "engagement") -> dict:
     """Bayesian optimisation of (k_pn, gamma_bar) as in paper V-A: GP with a Matern 2.5 kernel
     (bayes_opt's default), upper-confidence-bound acquisition, k_pn in [0.3, 3], gamma_bar in [5, 30] deg,
     each iteration ``runs_per_motion`` runs of every moving-gate motion (fresh initial conditions).
@@ -372,7 +373,7 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
         else:
             params = {k: float(v) for k, v in opt.suggest().items()}
         c = with_overrides(cfg, {"guidance": params})
-        jobs = [Job(c, RunSpec(m, seed=it * 100 + k * 10 + i), {"motion": m})
+        jobs = [Job(c, RunSpec(m, seed=it * 100 + k * 10 + i, protocol=protocol), {"motion": m})
                 for k, m in enumerate(TUNE_MOTIONS) for i in range(runs_per_motion)]
         runs = run_jobs(jobs, [1.0], n_jobs, progress=False)
         target = float(np.mean([run_reward(r, reward) for r in runs]))
@@ -384,7 +385,7 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
     top = sorted(history, key=lambda h: h["reward"], reverse=True)[:confirm_top]
     for k, h in enumerate(top):
         c = with_overrides(cfg, {"guidance": {"k_pn": h["k_pn"], "gamma_bar": h["gamma_bar"]}})
-        jobs = [Job(c, RunSpec(m, seed=100_000 + k * 1000 + j * 10 + i), {"motion": m})
+        jobs = [Job(c, RunSpec(m, seed=100_000 + k * 1000 + j * 10 + i, protocol=protocol), {"motion": m})
                 for j, m in enumerate(TUNE_MOTIONS) for i in range(confirm_runs)]
         runs = run_jobs(jobs, [1.0], n_jobs, progress=False)
         n0, n1 = runs_per_motion, confirm_runs
@@ -396,7 +397,8 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
           f"|---|---|---|---|---|\n| R_{reward} | {best['k_pn']:.2f} ({PAPER_TUNED[reward]['k_pn']:.2f}) | "
           f"{best['gamma_bar']:.2f} "
           f"({PAPER_TUNED[reward]['gamma_bar']:.2f}) | {best['reward']:.2f} | {best['success_1m']:.2f} |")
-    return {"suite": "tune", "reward": reward, "seed": seed, "best": best, "history": history, "markdown": md,
+    return {"suite": "tune", "reward": reward, "seed": seed, "protocol": protocol, "best": best, "history": history,
+            "markdown": md,
             "paper": PAPER_TUNED[reward], "config": config_as_dict(cfg)}
 
 
@@ -563,7 +565,8 @@ def _cmd_tune(args: argparse.Namespace, cfg: Config, out_dir: Path) -> int:
         return 2
     per = max(1, (args.runs or 2 * len(TUNE_MOTIONS)) // len(TUNE_MOTIONS))
     res = tune(cfg, iterations=args.iterations, init_points=args.init_points, reward=args.reward,
-               runs_per_motion=per, seed=args.seed, n_jobs=args.jobs, progress=not args.no_progress)
+               runs_per_motion=per, seed=args.seed, n_jobs=args.jobs, progress=not args.no_progress,
+               protocol=args.protocol)
     json_path = args.json if args.json is not None else out_dir / "results.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(res, indent=1, default=_json_default))
@@ -574,13 +577,13 @@ def _cmd_tune(args: argparse.Namespace, cfg: Config, out_dir: Path) -> int:
     print(f"best: --set guidance.k_pn={best['k_pn']:.3f} --set guidance.gamma_bar={best['gamma_bar']:.3f}")
     if args.overlay is not None:
         write_tuned_overlay(args.overlay, best, args.reward, list(args.config), args.seed, args.iterations,
-                            args.init_points, per)
+                            args.init_points, per, args.protocol)
         print(f"wrote {args.overlay} (use it with --config)")
     return 0
 
 
 def write_tuned_overlay(path: Path, best: dict, reward: str, config_files: list[str], seed: int, iterations: int,
-                        init_points: int, runs_per_motion: int) -> None:
+                        init_points: int, runs_per_motion: int, protocol: str = "engagement") -> None:
     """A config overlay with the tuned values that includes the --config files the tuning ran with, so one
     ``--config PATH`` reproduces the tuned vehicle (``include`` paths are relative to the overlay)."""
     path = Path(path)
@@ -589,7 +592,7 @@ def write_tuned_overlay(path: Path, best: dict, reward: str, config_files: list[
     c_t, c_d, c = REWARDS[reward]
     lines = [f"# Bayesian tuning result, reward R_{reward} (c_t {c_t:g}, c_d {c_d:g}, c {c:g}), paper IV-D / V-A.",
              f"# companion eval tune --reward {reward} --seed {seed} --iterations {iterations} --init-points "
-             f"{init_points} ({runs_per_motion} runs per moving-gate motion per iteration)"
+             f"{init_points} --protocol {protocol} ({runs_per_motion} runs per moving-gate motion per iteration)"
              + "".join(f" --config {f}" for f in config_files),
              f"# best: reward {best['reward']:.3f} (confirmation {best.get('confirm_reward', float('nan')):.3f}), "
              f"success 1 m {best['success_1m']:.2f} (confirmation {best.get('confirm_success_1m', float('nan')):.2f})"]

@@ -26,7 +26,7 @@ def test_overlay_includes_the_vehicle_and_sets_the_tuned_values(tmp_path: Path) 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "config/tuned").glob("*.yaml")), ids=lambda p: p.name)
 def test_shipped_tuned_overlays_load(path: Path) -> None:
-    profile = path.stem.rsplit("-", 1)[0]
+    profile = path.stem.split("-")[0]  # <profile>-<reward>[-<protocol>]
     cfg = load_config([path])
     vehicle = load_config([ROOT / "config/vehicles" / f"{profile}.yaml"])
     assert cfg.airframe == vehicle.airframe and cfg.sim.quad == vehicle.sim.quad

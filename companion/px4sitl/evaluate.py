@@ -6,7 +6,9 @@ geometric box), scored by SIH's ground truth. Several PX4 instances fly in paral
 process per instance). Between runs PX4 itself repositions the vehicle (MAV_CMD_DO_REPOSITION: its own
 position control) instead of landing and taking off: the app starts with ``app.start=pilot`` (it neither arms
 nor takes off, and hands back to Hold at the end), and the start points alternate between two hover points
-30 m apart, facing each other, so every run flies the same 25 m to its gate.
+30 m apart, facing each other, so every run flies the same 25 m to its gate. One gate per run, as in the
+in-process suite (``app.max_gates=1``: after a pass the app hands back instead of engaging whatever the
+detector finds next).
 
 Per run: success per gate radius (distance to the gate centre at the first crossing of gate 1's plane,
 from SIH's truth), t_gate (ENGAGE to the crossing), top speed, the commanded attitude's largest tilt and
@@ -250,7 +252,7 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
                 veh.close_truth()
                 run_dir = Path(out_dir) / "flights" / f"run{job.index:03d}"
                 ov = [*overrides, *px4.config_overrides(), "app.start=pilot", "app.camera=synthetic",
-                      "app.pilot_wait_timeout=20", "log.plot=false", f"log.directory={run_dir}",
+                      "app.pilot_wait_timeout=20", "app.max_gates=1", "log.plot=false", f"log.directory={run_dir}",
                       f"safety.altitude_reference={veh.baro_ground}", *job.overrides]
                 cfg = load_config(files, ov)
                 print(f"run {job.index}: {job.group} on instance {px4.instance}", file=log)

@@ -77,7 +77,7 @@ def test_summary_measures_a_real_cameras_frame_rate_and_runs_the_detector(sim, t
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (model.width, model.height))
     gate = Gate(np.array([10.0, 0.5, -0.3]), np.array([1.0, 0.0, 0.0]), 1.0, "ring", (20, 40, 230), 0.15,
                 up=(0.0, 0.0, -1.0))
-    for k in range(75):  # 2.5 s
+    for k in range(240):  # 8 s: pre-flight reads PX4's heartbeat (1 Hz) and failsafe parameters first
         img, _ = render_gate_frame(model, model.R_body_cam, np.zeros(3), gate, TRAIN_STYLE, rng, background=bg,
                                    t=k / 30.0)
         w.write(img)

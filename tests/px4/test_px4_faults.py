@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from px4kit import finish, flight_folder, start_app, states, wait_state
 
+from companion.app.states import Reason
 from companion.flightlog import read_flight, read_table
 from companion.px4sitl.launcher import PX4Sitl
 from companion.px4sitl.truth import SihTruth
@@ -65,8 +66,6 @@ def test_sigkill_mid_engagement_px4_failsafe_and_log_intact(px4: PX4Sitl, log_di
     assert set(f["setpoints"]["state"]) >= {"ENGAGE"}
 
 
-@pytest.mark.xfail(reason="needs the app to command and confirm Hold when aborting in TAKEOFF (issue 8 part 5)",
-                   strict=False)
 def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: Path) -> None:
     proc = start_app(px4, log_dir, "app.takeoff_altitude=12")
     folder = flight_folder(log_dir)
@@ -74,7 +73,7 @@ def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: 
     time.sleep(1.5)
     proc.send_signal(signal.SIGINT)
     rc, out = finish(proc, timeout=60)
-    assert rc == 23, out  # SIGNAL
+    assert rc == int(Reason.SIGNAL), out
     assert states(folder)[-1] == "SAFE_HOLD", states(folder)
     st = px4.status()
     assert st.armed and st.nav_mode == "Hold", st  # commanded and confirmed before the app named it
@@ -85,8 +84,6 @@ def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: 
     assert h1 < 10.0
 
 
-@pytest.mark.xfail(reason="needs the app to refuse a start on an armed, airborne vehicle (issue 8 part 5)",
-                   strict=False)
 def test_start_while_airborne_is_refused(px4: PX4Sitl, log_dir: Path) -> None:
     px4.param_set("MIS_TAKEOFF_ALT", 4.0)
     px4.client("commander", "arm")
@@ -99,7 +96,7 @@ def test_start_while_airborne_is_refused(px4: PX4Sitl, log_dir: Path) -> None:
     rc, out = finish(start_app(px4, log_dir), timeout=90)
     path = states(flight_folder(log_dir))
     assert "ARM" not in path and "TAKEOFF" not in path, path
-    assert rc == 25, out  # VEHICLE_BUSY: refused before commanding anything
+    assert rc == int(Reason.VEHICLE_BUSY), out  # refused before commanding anything
     assert path[-1] == "REFUSED", path
     st = px4.status()
     assert st.armed and st.nav_mode == "Hold", st
