@@ -234,9 +234,11 @@ def test_lock_name_is_the_vehicle_not_the_baud_rate():
     assert "/" not in lock_name("serial:///dev/ttyACM0:57600")
 
 
-def test_hung_detector_thread_the_process_still_exits_with_its_outcome(sim, tmp_path):
-    """The detector call never returns (in its worker thread): the watchdog hands over to HOLD, and the process
-    exits with PERCEPTION_STALL (12) instead of waiting for the thread forever."""
+@pytest.mark.parametrize("after", [0.0, 1.2], ids=["in_acquire", "later"])
+def test_hung_detector_thread_the_process_still_exits_with_its_outcome(sim, tmp_path, after):
+    """The detector call never returns (in its worker thread), from the first frame (ACQUIRE: no offboard
+    watchdog there) or later (usually engaged): the flight ends in SAFE_HOLD with PERCEPTION_STALL (12), and
+    the process exits instead of waiting for the thread forever."""
     from companion.app.main import detector_available
     from companion.config import load_config
 
@@ -244,7 +246,7 @@ def test_hung_detector_thread_the_process_still_exits_with_its_outcome(sim, tmp_
         pytest.skip("the shipped gate detector is not available")
     t0 = time.monotonic()
     r = run_fly(sim.url_for_mavsdk, tmp_path / "flights", "app.synthetic.render=image", "app.synthetic.fault=block",
-                "app.synthetic.fault_after=1.2", timeout=150)
+                f"app.synthetic.fault_after={after}", timeout=150)
     dt = time.monotonic() - t0
     assert r.returncode == 12, r.stderr[-3000:]
     assert "still running after the safe end: exiting anyway (exit 12)" in r.stderr
