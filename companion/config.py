@@ -197,6 +197,9 @@ class Config(Section):
             )
         if self.airframe.f_min >= G:
             raise ValueError("airframe.thrust_min is at or above hover thrust")
+        exposed = self.link.exposure_problem()  # here, not in LinkConfig: url and allow_all_interfaces together
+        if exposed is not None:
+            raise ValueError(exposed)
         return self
 
 

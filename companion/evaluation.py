@@ -349,10 +349,13 @@ def run_reward(run: dict, reward: str) -> float:
 
 
 def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str = "dt", runs_per_motion: int = 2,
-         seed: int = 0, n_jobs: int = 2, progress: bool = True) -> dict:
+         seed: int = 0, n_jobs: int = 2, progress: bool = True, confirm_top: int = 3, confirm_runs: int = 4,
+         protocol: str = "engagement") -> dict:
     """Bayesian optimisation of (k_pn, gamma_bar) as in paper V-A: GP with a Matern 2.5 kernel
     (bayes_opt's default), upper-confidence-bound acquisition, k_pn in [0.3, 3], gamma_bar in [5, 30] deg,
-    each iteration ``runs_per_motion`` runs of every moving-gate motion (fresh initial conditions)."""
+    each iteration ``runs_per_motion`` runs of every moving-gate motion (fresh initial conditions).
+    Then the ``confirm_top`` best points are flown again (``confirm_runs`` per motion, fresh seeds) and the
+    best pooled reward wins (the paper reports the best iteration, which rewards luck with 8 runs)."""
     from bayes_opt import BayesianOptimization, acquisition
     from tqdm import tqdm
 
@@ -370,19 +373,32 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
         else:
             params = {k: float(v) for k, v in opt.suggest().items()}
         c = with_overrides(cfg, {"guidance": params})
-        jobs = [Job(c, RunSpec(m, seed=it * 100 + k * 10 + i), {"motion": m})
+        jobs = [Job(c, RunSpec(m, seed=it * 100 + k * 10 + i, protocol=protocol), {"motion": m})
                 for k, m in enumerate(TUNE_MOTIONS) for i in range(runs_per_motion)]
         runs = run_jobs(jobs, [1.0], n_jobs, progress=False)
         target = float(np.mean([run_reward(r, reward) for r in runs]))
         opt.register(params=params, target=target)
         history.append({"iteration": it, **params, "reward": target,
                         "success_1m": float(np.mean([r["success"]["1.0"] for r in runs])), **setpoint_metrics(runs)})
-    best = max(history, key=lambda h: h["reward"])
+    # The best single iteration saw 2 runs per motion: its reward is partly luck. Re-fly the best few on fresh
+    # initial conditions and keep the one that holds up (mean over both samples).
+    top = sorted(history, key=lambda h: h["reward"], reverse=True)[:confirm_top]
+    for k, h in enumerate(top):
+        c = with_overrides(cfg, {"guidance": {"k_pn": h["k_pn"], "gamma_bar": h["gamma_bar"]}})
+        jobs = [Job(c, RunSpec(m, seed=100_000 + k * 1000 + j * 10 + i, protocol=protocol), {"motion": m})
+                for j, m in enumerate(TUNE_MOTIONS) for i in range(confirm_runs)]
+        runs = run_jobs(jobs, [1.0], n_jobs, progress=False)
+        n0, n1 = runs_per_motion, confirm_runs
+        h["confirm_reward"] = float(np.mean([run_reward(r, reward) for r in runs]))
+        h["confirm_success_1m"] = float(np.mean([r["success"]["1.0"] for r in runs]))
+        h["pooled_reward"] = (n0 * h["reward"] + n1 * h["confirm_reward"]) / (n0 + n1)
+    best = max(top or history, key=lambda h: h.get("pooled_reward", h["reward"]))
     md = ("| reward | k_pn ours (paper) | gamma_bar deg ours (paper) | mean reward | success 1 m |\n"
           f"|---|---|---|---|---|\n| R_{reward} | {best['k_pn']:.2f} ({PAPER_TUNED[reward]['k_pn']:.2f}) | "
           f"{best['gamma_bar']:.2f} "
           f"({PAPER_TUNED[reward]['gamma_bar']:.2f}) | {best['reward']:.2f} | {best['success_1m']:.2f} |")
-    return {"suite": "tune", "reward": reward, "seed": seed, "best": best, "history": history, "markdown": md,
+    return {"suite": "tune", "reward": reward, "seed": seed, "protocol": protocol, "best": best, "history": history,
+            "markdown": md,
             "paper": PAPER_TUNED[reward], "config": config_as_dict(cfg)}
 
 
@@ -489,6 +505,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--init-points", type=int, default=5, help="tune: random points first (5)")
     p.add_argument("--reward", choices=tuple(REWARDS), default="dt",
                    help="tune: dt = distance + time (c_t 10, c_d 3), d = distance only (c_d 5, c 3)")
+    p.add_argument("--overlay", type=Path, default=None, metavar="PATH",
+                   help="tune: write the result as a config overlay (includes the --config files) for fly/eval")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--autopilot", choices=("in-process", "px4"), default="in-process",
                    help="px4: table1 in real time on PX4 SITL (SIH) with the complete app, one PX4 instance per "
@@ -547,7 +565,8 @@ def _cmd_tune(args: argparse.Namespace, cfg: Config, out_dir: Path) -> int:
         return 2
     per = max(1, (args.runs or 2 * len(TUNE_MOTIONS)) // len(TUNE_MOTIONS))
     res = tune(cfg, iterations=args.iterations, init_points=args.init_points, reward=args.reward,
-               runs_per_motion=per, seed=args.seed, n_jobs=args.jobs, progress=not args.no_progress)
+               runs_per_motion=per, seed=args.seed, n_jobs=args.jobs, progress=not args.no_progress,
+               protocol=args.protocol)
     json_path = args.json if args.json is not None else out_dir / "results.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(res, indent=1, default=_json_default))
@@ -556,7 +575,31 @@ def _cmd_tune(args: argparse.Namespace, cfg: Config, out_dir: Path) -> int:
     print(md)
     best = res["best"]
     print(f"best: --set guidance.k_pn={best['k_pn']:.3f} --set guidance.gamma_bar={best['gamma_bar']:.3f}")
+    if args.overlay is not None:
+        write_tuned_overlay(args.overlay, best, args.reward, list(args.config), args.seed, args.iterations,
+                            args.init_points, per, args.protocol)
+        print(f"wrote {args.overlay} (use it with --config)")
     return 0
+
+
+def write_tuned_overlay(path: Path, best: dict, reward: str, config_files: list[str], seed: int, iterations: int,
+                        init_points: int, runs_per_motion: int, protocol: str = "engagement") -> None:
+    """A config overlay with the tuned values that includes the --config files the tuning ran with, so one
+    ``--config PATH`` reproduces the tuned vehicle (``include`` paths are relative to the overlay)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    inc = [os.path.relpath(Path(f).resolve(), path.parent.resolve()) for f in config_files]
+    c_t, c_d, c = REWARDS[reward]
+    lines = [f"# Bayesian tuning result, reward R_{reward} (c_t {c_t:g}, c_d {c_d:g}, c {c:g}), paper IV-D / V-A.",
+             f"# companion eval tune --reward {reward} --seed {seed} --iterations {iterations} --init-points "
+             f"{init_points} --protocol {protocol} ({runs_per_motion} runs per moving-gate motion per iteration)"
+             + "".join(f" --config {f}" for f in config_files),
+             f"# best: reward {best['reward']:.3f} (confirmation {best.get('confirm_reward', float('nan')):.3f}), "
+             f"success 1 m {best['success_1m']:.2f} (confirmation {best.get('confirm_success_1m', float('nan')):.2f})"]
+    if inc:
+        lines += ["include:"] + [f"  - {i}" for i in inc]
+    lines += ["guidance:", f"  k_pn: {best['k_pn']:.3f}", f"  gamma_bar: {best['gamma_bar']:.3f} deg", ""]
+    path.write_text("\n".join(lines))
 
 
 def _json_default(o: Any) -> Any:

@@ -106,12 +106,16 @@ class HoverThrustEstimator:
         return self.estimate() if self.ready else None
 
 
-def use_hover_thrust(ctrl: Any, hover_thrust: float, thrust_to_weight: float) -> None:
-    """Give a running PNController a new hover thrust without restarting its LOS filter.
+def use_hover_thrust(ctrl: Any, hover_thrust: float, thrust_to_weight: float, engagement: Any = None) -> None:
+    """Give a running PNController (and the engagement around it) a new hover thrust without restarting
+    the LOS filter.
 
-    The same numbers as ``PNController.with_hover_thrust`` (thrust limits follow the hover thrust), but
-    in place: the estimate changes every frame during an engagement, the filter state must survive.
+    The same numbers as ``PNController.with_hover_thrust`` (thrust limits follow the hover thrust), but in
+    place: the estimate changes every frame during an engagement, the filter state must survive. The
+    engagement's straight pass and recovery use the hover thrust too (level flight, climb-out).
     """
     f_max = G * min(thrust_to_weight, 1.0 / hover_thrust)
     f_min = G * ctrl.p.thrust_min / hover_thrust
     ctrl.p = replace(ctrl.p, hover_thrust=hover_thrust, guidance=replace(ctrl.p.guidance, f_max=f_max, f_min=f_min))
+    if engagement is not None:
+        engagement.params = replace(engagement.params, hover_thrust=hover_thrust, f_min=f_min, f_max=f_max)

@@ -9,7 +9,8 @@ and one column per ``topic/column``; a cell is empty where that topic has no sam
 interpolation, no hold: every value is one that was logged). PlotJuggler's CSV loader takes ``t`` as
 the time axis and builds a tree from the ``/`` in the names; a spreadsheet opens it as it is. Text
 columns (state names, flight mode) stay text; ``states/state_index`` is the state as a number so it can
-be plotted.
+be plotted. ``--fill hold`` repeats each topic's last value instead of leaving cells empty, for tools
+that cannot take sparse rows (PlotJuggler 3.14.3 typed a column from its first row only; fixed after).
 """
 
 from __future__ import annotations
@@ -201,8 +202,9 @@ def _state_index() -> dict[str, int]:
     return {s.value: i for i, s in enumerate(State)}
 
 
-def export_merged(folder: str | Path, out: str | Path | None = None) -> Path:
-    """One CSV, common time column ``t``, columns ``topic/column``; empty cells where a topic has no sample."""
+def export_merged(folder: str | Path, out: str | Path | None = None, fill: str = "none") -> Path:
+    """One CSV, common time column ``t``, columns ``topic/column``; empty cells where a topic has no sample
+    (``fill="none"``), or each topic's last logged value held until its next sample (``fill="hold"``)."""
     folder = resolve_folder(folder)
     flight = read_flight(folder)
     index = _state_index()
@@ -232,8 +234,12 @@ def export_merged(folder: str | Path, out: str | Path | None = None) -> Path:
     with open(path, "w", encoding="utf-8", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(["t", *cols])
+        held: dict[str, Any] = {}
         for t in sorted(per_time):
             row = per_time[t]
+            if fill == "hold":
+                held.update({c: v for c, v in row.items() if _cell(v) != ""})
+                row = held
             w.writerow([format(t, ".9g"), *(_cell(row.get(c)) for c in cols)])
     return path
 
@@ -258,6 +264,9 @@ def register_log_actions(lsub: Any) -> None:
     ep = lsub.add_parser("export", help="one merged CSV (common time column t) for PlotJuggler / spreadsheets")
     ep.add_argument("folder", help="flight folder (or a log directory: its latest flight)")
     ep.add_argument("-o", "--output", help="CSV path (default FOLDER/flight.csv)")
+    ep.add_argument("--fill", choices=("none", "hold"), default="none",
+                    help="none: empty cell where a topic has no sample (default); hold: repeat each topic's last "
+                         "value (for tools that need every cell filled)")
     ep.set_defaults(func=_cmd_export)
 
 
@@ -273,7 +282,7 @@ def _cmd_summary(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     try:
-        out = export_merged(args.folder, args.output)
+        out = export_merged(args.folder, args.output, args.fill)
     except (FileNotFoundError, ValueError) as e:
         print(f"companion log export: {e}", file=sys.stderr)
         return 2

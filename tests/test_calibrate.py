@@ -218,3 +218,26 @@ def test_calibrate_with_a_charuco_board(tmp_path):
     cam = yaml.safe_load(out.read_text())["camera"]
     for key, true in (("fx", K_TRUE[0, 0]), ("fy", K_TRUE[1, 1]), ("cx", K_TRUE[0, 2]), ("cy", K_TRUE[1, 2])):
         assert cam[key] == pytest.approx(true, rel=0.01), (key, cam)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_calibrate_from_a_video_counts_a_held_board_once(tmp_path):
+    """The same views as a video file, each held for 2 frames: one view each, intrinsics still within 1 %."""
+    views = tmp_path / "views"
+    _write_views(views, GOOD_POSES)
+    video = tmp_path / "board.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (W, H))
+    for f in sorted(views.iterdir()):
+        img = cv2.imread(str(f))
+        w.write(img)
+        w.write(img)
+    w.release()
+    out = tmp_path / "camera.yaml"
+    res = _calibrate(video, out)
+    assert res.returncode == 0, res.stderr
+    cam = yaml.safe_load(out.read_text())["camera"]
+    for key, true in (("fx", K_TRUE[0, 0]), ("fy", K_TRUE[1, 1]), ("cx", K_TRUE[0, 2]), ("cy", K_TRUE[1, 2])):
+        assert cam[key] == pytest.approx(true, rel=0.01), (key, cam)
+    found = int(res.stdout.split(" views,")[0].split()[-1])
+    assert 10 <= found <= len(GOOD_POSES)  # 2 identical frames = 1 view (else up to twice as many)

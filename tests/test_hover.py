@@ -84,3 +84,18 @@ def test_use_hover_thrust_equals_a_fresh_controller_but_keeps_the_filter():
     oa = a.step(1 / 30, BoundingBox(332.0, 236.0, 41.0, 41.0, 0.9), q)
     ob = b.step(1 / 30, BoundingBox(332.0, 236.0, 41.0, 41.0, 0.9), q)
     assert oa.setpoint.thrust == pytest.approx(ob.setpoint.thrust) and oa.f_th == pytest.approx(ob.f_th)
+
+
+def test_use_hover_thrust_also_moves_the_engagements_pass_and_recovery():
+    from companion.engagement import Engagement
+
+    cfg = load_config()
+    ctrl = PNController.from_config(cfg)
+    eng = Engagement.from_config(cfg, ctrl)
+    use_hover_thrust(ctrl, 0.625, cfg.airframe.thrust_to_weight, eng)
+    assert eng.params.hover_thrust == 0.625
+    assert eng.params.f_max == pytest.approx(ctrl.p.guidance.f_max) and eng.params.f_min == pytest.approx(
+        ctrl.p.guidance.f_min)
+    assert eng.params.f_max == pytest.approx(G * 1.6)  # 1 / 0.625: full thrust is the limit now
+    assert eng._recover_setpoint(np.array([1.0, 0, 0, 0])).thrust == pytest.approx(
+        min(1.0, 0.625 * cfg.app.recover_thrust_scale))

@@ -9,6 +9,24 @@ from pydantic import Field, model_validator
 from companion.configbase import Deg, Hertz, Meters, Number, Seconds, Section
 
 
+def all_interfaces_reason(url: str) -> str | None:
+    """Why a mavsdk URL makes mavsdk listen on every network interface, or None when it does not.
+
+    mavsdk binds 0.0.0.0 on a random port for ``udpout://`` (to receive the answers), listens on every
+    interface for ``udpin://0.0.0.0:PORT`` and for the deprecated ``udp://:PORT``, and serves ``tcpin://``
+    on the address given.
+    """
+    u = url.strip().lower()
+    if u.startswith("udpout://"):
+        return "makes mavsdk bind 0.0.0.0 (every interface) on a random port"
+    for scheme in ("udpin://", "tcpin://", "udp://", "tcp://"):
+        if u.startswith(scheme):
+            host = u[len(scheme):].rsplit(":", 1)[0]
+            if host in ("", "0.0.0.0", "[::]", "::"):
+                return "listens on every network interface"
+    return None
+
+
 class LinkConfig(Section):
     """How the app reaches the autopilot through mavsdk."""
 
@@ -22,6 +40,26 @@ class LinkConfig(Section):
     )
     takeoff_timeout: Seconds = Field(30.0, gt=0.0, le=600.0, description="s; take-off to the target altitude")
     land_timeout: Seconds = Field(60.0, gt=0.0, le=600.0, description="s; landing and auto-disarm")
+    mode_timeout: Seconds = Field(
+        3.0, gt=0.0, le=60.0,
+        description="s to see a commanded mode in PX4's heartbeat (1 Hz: a change shows 0.2-1.0 s after it happens)",
+    )
+    system_id: int = Field(1, ge=1, le=255, description="MAVLink system id of the autopilot (PX4 MAV_SYS_ID)")
+    component_id: int = Field(1, ge=1, le=255, description="MAVLink component id of the autopilot (PX4: 1)")
+    allow_all_interfaces: bool = Field(
+        False, description="allow a link that listens on every network interface (udpout://, udpin://0.0.0.0, udp://:)"
+    )
+    events_metadata: str = Field(
+        "", description="PX4 event metadata (all_events.json[.xz]); empty: the PX4 v1.15 file shipped with the app"
+    )
+
+    def exposure_problem(self) -> str | None:
+        """The one-line reason this link may not be used (checked across sections by companion.config.Config)."""
+        why = all_interfaces_reason(self.url)
+        if why is not None and not self.allow_all_interfaces:
+            return (f"link.url {self.url!r} {why}: anyone on the network could command the vehicle "
+                    "(use udpin://127.0.0.1:PORT or a serial link, or set link.allow_all_interfaces: true)")
+        return None
 
 
 class SafetyConfig(Section):
@@ -51,6 +89,15 @@ class SafetyConfig(Section):
     )
     land_after_abort: bool = Field(
         False, description="after an abort in HOLD, land and disarm (False: stay in HOLD for the pilot)"
+    )
+    require_safe_offboard_loss: bool = Field(
+        True, description="refuse to arm unless PX4's offboard-loss failsafe ends in a safe mode (COM_OBL_RC_ACT ...)"
+    )
+    max_offboard_loss_time: Seconds = Field(
+        2.0, gt=0.0, le=60.0, description="s; largest COM_OF_LOSS_T accepted (PX4 flies the last setpoint that long)"
+    )
+    telemetry_reject_limit: int = Field(
+        5, ge=1, le=1000, description="rejected attitude samples within 1 s that abort (TELEMETRY_INVALID)"
     )
 
     @model_validator(mode="after")

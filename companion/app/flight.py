@@ -30,7 +30,7 @@ from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
 from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
-from companion.app.safety import Abort, mode_is_pilot
+from companion.app.safety import Abort
 from companion.app.states import Reason, State, StateMachine, Transition
 from companion.controller import ControlOutput, PNController
 from companion.engagement import Decision, Engagement, EngagementParams, Phase
@@ -42,6 +42,18 @@ if TYPE_CHECKING:
     from companion.config import Config
 
 GROUND_STATES = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
+# Modes a pilot selects (mavsdk FlightMode names); any other mode we did not ask for is PX4's own choice.
+PILOT_MODES = frozenset({"POSCTL", "ALTCTL", "MANUAL", "STABILIZED", "ACRO", "RATTITUDE"})
+# Modes the vehicle may show while the app is in a state; anything else is noticed (companion/app/states.py).
+EXPECTED_MODES: dict[State, frozenset[str]] = {
+    State.TAKEOFF: frozenset({"TAKEOFF", "HOLD"}),
+    State.ACQUIRE: frozenset({"HOLD"}),
+    State.ENGAGE: frozenset({"HOLD", "OFFBOARD"}),  # HOLD until PX4 confirms OFFBOARD at the first engage
+    State.PASS: frozenset({"OFFBOARD"}),
+    State.RECOVER: frozenset({"OFFBOARD"}),
+    State.HANDBACK: frozenset({"OFFBOARD", "HOLD"}),
+    State.LAND: frozenset({"LAND", "HOLD"}),  # HOLD until PX4 shows the LAND we commanded
+}
 
 
 class _ClearLine:
@@ -144,15 +156,34 @@ class FlightApp:
             raise _Tripped(self._fault)
 
     def on_link_event(self, kind: str, detail: dict[str, Any]) -> None:
-        """Every link event goes to the log; the ones that end a flight trip the state machine."""
+        """Every link event goes to the log; the ones that end a flight trip the state machine.
+
+        PX4's own words (events, STATUSTEXT) of warning level or worse go to stderr too.
+        """
+        if kind in ("px4_event", "status_text"):
+            level = str(detail.get("level", detail.get("type", "")))
+            severe = bool(detail.get("severe", level.lower() in ("emergency", "alert", "critical", "error",
+                                                                 "warning")))
+            self.log.event(f"PX4 {level}: {detail.get('text')}", "warn" if severe else "info")
+            if severe and self.stderr is not None:
+                print(f"companion: PX4 {level}: {detail.get('text')}", file=self.stderr, flush=True)
+            return
         self.log.event(f"link {kind} {detail}" if detail else f"link {kind}", "warn" if kind in (
-            "watchdog", "loop_guard", "offboard_lost", "link_lost", "close_leaked", "telemetry_error") else "info")
+            "watchdog", "loop_guard", "offboard_lost", "link_lost", "close_leaked", "telemetry_error",
+            "telemetry_rejected", "telemetry_invalid", "envelope", "exposed") else "info")
         if kind in ("watchdog", "loop_guard"):  # the link's setpoint watchdog / loop guard: our output stopped
             self.trip(Reason.PERCEPTION_STALL, f"link watchdog: no fresh setpoint for {detail.get('age', 0):.2f} s")
-        elif kind == "offboard_lost":  # PX4 left OFFBOARD by itself: the pilot (or a PX4 failsafe) has it
-            self.trip(Reason.PILOT_TAKEOVER, f"vehicle left OFFBOARD for {detail.get('mode')}")
+        elif kind == "offboard_lost":  # PX4 left OFFBOARD by itself: the pilot or a PX4 failsafe has it
+            mode = str(detail.get("mode"))
+            self.trip(Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE,
+                      f"vehicle left OFFBOARD for {mode}")
         elif kind == "link_lost":
             self.trip(Reason.LINK_LOST, f"no telemetry for {detail.get('age', 0):.1f} s")
+        elif kind == "telemetry_invalid":
+            self.trip(Reason.TELEMETRY_INVALID, f"{detail.get('count')} {detail.get('what')} samples rejected "
+                      f"within 1 s (last: {detail.get('why')})")
+        elif kind == "envelope" and detail.get("action") == "clamped" and self.stderr is not None:
+            print(f"companion: setpoint envelope: {detail.get('why')}", file=self.stderr, flush=True)
 
     async def run(self) -> Reason:
         cpu0, wall0 = time.process_time(), self.clock()
@@ -172,6 +203,7 @@ class FlightApp:
         except _Tripped as e:
             self._fault = self._fault or e.abort
         except Exception as e:  # (any exception ends in a safe state, with its text)
+            self._check_vehicle()  # a takeover or disarm seen in telemetry explains it better than the exception
             self._fault = self._fault or self._classify(e)
         if not self.sm.done:
             fault = self._fault or Abort(Reason.EXCEPTION, "flight sequence ended without a safe state")
@@ -229,9 +261,11 @@ class FlightApp:
         self._connected = True
         self._check_fault()
         self.sm.go(State.PREFLIGHT, "autopilot found")
+        await self._vehicle_as_found()
         await self.link.wait_healthy()
         hover = await self.link.hover_thrust()
         self._check_fault()
+        await self._check_failsafe_params()
         if hover is not None and 0.05 < hover < 0.95:
             self.ctrl = self.ctrl.with_hover_thrust(hover, cfg.airframe.thrust_to_weight)
             self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
@@ -255,6 +289,44 @@ class FlightApp:
             self._check_fault()
             self.sm.go(State.ACQUIRE, "pilot hovers armed in the air")
         await self._fly()
+
+    async def _vehicle_as_found(self) -> None:
+        """PX4's rules before we command anything: never arm or take off a vehicle that is armed or flying
+        (start=takeoff), and put one found disarmed in OFFBOARD (after an offboard-loss landing) in HOLD,
+        without which PX4 1.15 refuses its pre-flight checks."""
+        link = self.link
+        await link.wait_until(lambda: link.armed is not None and link.landed_state is not None
+                              and link.flight_mode is not None, self.cfg.link.mode_timeout + 2.0,
+                              "no heartbeat and landed state from the autopilot")
+        self._check_fault()
+        airborne = link.landed_state not in ("ON_GROUND", "UNKNOWN")
+        if self.cfg.app.start == "takeoff" and (link.armed or airborne):
+            raise _Tripped(Abort(Reason.VEHICLE_BUSY, (
+                f"vehicle found {'armed' if link.armed else 'disarmed'}, landed state {link.landed_state}, mode "
+                f"{link.flight_mode}: refusing to arm or take off (app.start=pilot flies a vehicle in the air)")))
+        if link.armed is False and link.flight_mode == "OFFBOARD":
+            self.log.event("vehicle found disarmed in OFFBOARD (after an offboard-loss landing): commanding HOLD",
+                           "warn")
+            await link.hold()
+            self._check_fault()
+            self.log.event("HOLD confirmed; pre-flight checks can pass again")
+
+    async def _check_failsafe_params(self) -> None:
+        """Read and report what PX4 does if the app dies; refuse when offboard loss would not end safely."""
+        from companion.app.failsafe import judge
+
+        values = await self.link.failsafe_params(timeout=min(self.cfg.link.command_timeout, 3.0))
+        self._check_fault()
+        line, problems = judge(values, self.cfg.safety.max_offboard_loss_time)
+        self.log.event(line, "warn" if problems else "info")
+        if self.stderr is not None:
+            print(f"companion: {line}", file=self.stderr, flush=True)
+        if problems:
+            text = "; ".join(problems)
+            if self.cfg.safety.require_safe_offboard_loss:
+                raise _Tripped(Abort(Reason.UNSAFE_FAILSAFE, f"{text} (safety.require_safe_offboard_loss)"))
+            self.log.event(f"failsafe not safe, flying anyway (safety.require_safe_offboard_loss false): {text}",
+                           "warn")
 
     async def _wait_pilot_hover(self) -> None:
         """Armed, in the air, above the altitude floor, not in an automatic take-off or landing, for 1 s."""
@@ -369,7 +441,8 @@ class FlightApp:
         if imu is not None and self._hover_u is not None:
             e = h.update(imu.t_rx, self._hover_u, -float(imu.accel_frd[2]))  # FRD: the thrust axis is -z
             if e is not None:
-                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight)
+                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight,
+                                 getattr(self, "engagement", None))  # the pass and recovery too
                 self.log.write("hover", u_cmd=self._hover_u, a_up=-float(imu.accel_frd[2]),
                                hover_thrust=e.hover_thrust, std=e.std, samples=e.samples)
                 if self._hover_logged is None or abs(e.hover_thrust - self._hover_logged) > 0.01:
@@ -429,44 +502,77 @@ class FlightApp:
 
     # ------------------------------------------------------------------------------ safe ends
     async def _safe_end(self, fault: Abort) -> None:
+        """Bring the vehicle to one named state that is TRUE of it: HOLD only when PX4 reports HOLD, landed
+        only when landed and disarmed; otherwise the state names what the autopilot reports."""
         st, r, d = self.sm.state, fault.reason, fault.detail
         self._last_setpoint = math.inf  # the watchdog has nothing more to guard
-        if r is Reason.PILOT_TAKEOVER:
-            # The link already stopped commanding (no mode change of ours, never offboard again);
-            # closing it ends MAVSDK's resending too.
-            await self.link.close()
-            self.sm.go(State.SAFE_PILOT, d + "; we stopped commanding", r)
-            return
         if r is Reason.LINK_LOST:
             await self.link.close()
             self.sm.go(State.SAFE_FAILSAFE_LINK, d + "; streaming stopped, PX4's own failsafe acts", r)
             return
-        if st in GROUND_STATES:
-            self.sm.go(State.ABORT_NOT_ARMED, d, r)
+        if r in (Reason.PILOT_TAKEOVER, Reason.AUTOPILOT_MODE, Reason.DISARMED):
+            # Someone else has the vehicle: no mode change of ours, never offboard again; closing the link
+            # ends MAVSDK's resending too.
+            await self.link.close()
+            self._go_seen(d + "; we stopped commanding", r)
             return
+        if r is Reason.VEHICLE_BUSY and st in GROUND_STATES:
+            self.sm.go(State.REFUSED, d, r)
+            return
+        if st in GROUND_STATES:
+            if self.link.armed is True:  # e.g. the arm ACK was lost but PX4 armed: say so, do not claim "not armed"
+                self._go_seen(d + "; the vehicle is armed", r)
+            else:
+                self.sm.go(State.ABORT_NOT_ARMED, d, r)
+            return
+        pilot_start = self.cfg.app.start == "pilot"
         if st.offboard:
             self.sm.go(State.HANDBACK, d)
             try:
-                await self.link.stop_offboard()
+                await self.link.stop_offboard()  # waits until PX4 reports HOLD
             except Exception as e:
                 # PX4 did not confirm HOLD: stop MAVSDK's resending so PX4's offboard-loss failsafe acts.
                 await self.link.close()
                 self.sm.go(State.SAFE_FAILSAFE_LINK, f"{d}; offboard stop failed ({e}): streaming stopped", r)
                 return
             st = State.HANDBACK
-        if self.cfg.safety.land_after_abort and st is not State.LAND:
+        elif st in (State.TAKEOFF, State.LAND) or (st is State.ACQUIRE and not pilot_start):
+            # PX4 is flying its own take-off, landing or hold for us: command Hold and see it confirmed.
+            try:
+                await self.link.hold()
+            except Exception as e:
+                await self.link.close()
+                self._go_seen(f"{d}; Hold not confirmed ({e}); we stopped commanding", r)
+                return
+        elif pilot_start:  # ACQUIRE or WAIT_PILOT with the pilot flying: the pilot keeps the vehicle
+            await self.link.close()
+            self._go_seen(d + "; we never commanded", r)
+            return
+        if self.cfg.safety.land_after_abort and self.link.flight_mode == "HOLD":
             if st is not State.HANDBACK:
                 self.sm.go(State.HANDBACK, d)
             self.sm.go(State.LAND, d + "; land_after_abort")
             await self.link.land()
             await self.link.wait_landed_and_disarm()
-            self.sm.go(State.SAFE_LANDED, d, r)
+            self._go_seen(d, r)
             return
-        if st is State.LAND:
-            self.sm.go(State.SAFE_LANDED if self.link.armed is False else State.SAFE_HOLD,
-                       d + "; PX4 continues its landing", r)
-            return
-        self.sm.go(State.SAFE_HOLD, d + "; PX4 holds", r)
+        self._go_seen(d, r)
+
+    def _go_seen(self, detail: str, reason: Reason) -> None:
+        """The terminal state that names what the autopilot last reported."""
+        link = self.link
+        mode, armed, landed = link.flight_mode, link.armed, link.landed_state
+        if armed is False and landed == "ON_GROUND":
+            self.sm.go(State.SAFE_LANDED, f"{detail}; landed and disarmed", reason)
+        elif armed is False:
+            self.sm.go(State.DISARMED, f"{detail}; vehicle disarmed in the air (landed state {landed})", reason)
+        elif mode == "HOLD":
+            self.sm.go(State.SAFE_HOLD, f"{detail}; PX4 holds", reason)
+        elif mode in PILOT_MODES:
+            self.sm.go(State.SAFE_PILOT, f"{detail}; the pilot has the vehicle in {mode}", reason)
+        else:
+            self.sm.go(State.AUTOPILOT, f"{detail}; PX4 flies in {mode} (armed {armed}, landed state {landed})",
+                       reason)
 
     async def _last_resort(self, fault: Abort, err: BaseException) -> None:
         """The safe end itself failed: stop streaming (PX4's failsafe acts) and name that state."""
@@ -475,8 +581,10 @@ class FlightApp:
         detail = f"{fault.detail}; safe end failed ({type(err).__name__}: {err}): streaming stopped"
         if self.sm.done:
             return
-        if self.sm.state in GROUND_STATES:
+        if self.sm.state in GROUND_STATES and self.link.armed is not True:
             self.sm.go(State.ABORT_NOT_ARMED, detail, fault.reason)
+        elif self.sm.state in GROUND_STATES:
+            self._go_seen(detail, fault.reason)
         else:
             self.sm.go(State.SAFE_FAILSAFE_LINK, detail, fault.reason)
 
@@ -488,6 +596,7 @@ class FlightApp:
             ("ConnectFailed", Reason.CONNECT_FAILED), ("PreflightFailed", Reason.PREFLIGHT_FAILED),
             ("NotHealthy", Reason.PREFLIGHT_FAILED), ("TakeoffFailed", Reason.COMMAND_TIMEOUT),
             ("OffboardLost", Reason.PILOT_TAKEOVER), ("CommandDenied", Reason.COMMAND_TIMEOUT),
+            ("SetpointRejected", Reason.SETPOINT_INVALID),
         ]
         for name, reason in table:
             exc = getattr(linkmod, name, None)
@@ -513,11 +622,37 @@ class FlightApp:
             if not self._connected:
                 continue
             self._log_telemetry()
-            st, mode = self.sm.state, self.link.flight_mode
-            if not self.link.link_ok and not st.terminal:
-                self.trip(Reason.LINK_LOST, f"no telemetry for {self.link.telemetry_age:.1f} s")
-            elif st is State.ACQUIRE and self.cfg.app.start == "takeoff" and mode and mode_is_pilot("takeoff", mode):
-                self.trip(Reason.PILOT_TAKEOVER, f"flight mode changed to {mode} during {st.value}")
+            self._check_vehicle()
+
+    def _check_vehicle(self) -> None:
+        """What telemetry shows, in every state: link loss, disarm in the air, a mode nobody here asked for.
+
+        Runs every 50 ms (the monitor) and before an exception is classified, so a takeover that made a
+        command fail is named as the takeover. PX4 reports mode and arming at 1 Hz; the 0.5 s budget
+        counts from the heartbeat that shows them.
+        """
+        if not self._connected or self.sm.done or self._fault is not None:
+            return
+        st, link = self.sm.state, self.link
+        mode, armed = link.flight_mode, link.armed
+        if not link.link_ok:
+            self.trip(Reason.LINK_LOST, f"no telemetry for {link.telemetry_age:.1f} s")
+            return
+        pilot_start = self.cfg.app.start == "pilot"
+        airborne_state = st not in GROUND_STATES and st not in (State.WAIT_PILOT, State.LAND)
+        if airborne_state and armed is False:
+            self.trip(Reason.DISARMED, f"vehicle disarmed during {st.value} (mode {mode}, landed state "
+                      f"{link.landed_state})")
+            return
+        expected = EXPECTED_MODES.get(st)
+        if expected is None or mode is None or mode in expected or armed is False:
+            return
+        if pilot_start and (st is State.ACQUIRE or (st is State.ENGAGE and not link.offboard_active)):
+            return  # the pilot flies in a mode of the pilot's choosing until PX4 confirms OFFBOARD
+        if st.offboard and link.offboard_active:
+            return  # the link's own offboard watchdog reports it (offboard_lost) and stops commanding first
+        who = Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE
+        self.trip(who, f"flight mode changed to {mode} during {st.value}")
 
     async def _watchdog(self) -> None:
         """No fresh setpoint while we own the vehicle -> hand over (MAVSDK keeps resending the old one)."""

@@ -3,10 +3,12 @@
 Public API (names are stable; the state machine and its tests rely on them)::
 
     link = VehicleLink.from_config(cfg, on_event=None)       # or VehicleLink(cfg.link, ...)
-    await link.connect(url=None, timeout=None)                 # ConnectFailed
+    await link.connect(url=None, timeout=None)                 # ConnectFailed, WrongAutopilot (link.system_id)
     await link.wait_healthy(timeout=None)                      # NotHealthy
     await link.hover_thrust(timeout=None) -> float             # MPC_THR_HOVER, else config (never raises)
     await link.read_param(name, timeout=None) -> float         # CommandTimeout, CommandDenied
+    await link.read_param_int(name, timeout=None) -> int
+    await link.failsafe_params(timeout=None) -> {name: value|None}   # companion/app/failsafe.py
     await link.arm(timeout=None)                               # ArmDenied, CommandTimeout
     await link.takeoff(altitude_m, timeout=None)               # TakeoffFailed, CommandTimeout (waits for HOLD)
     await link.start_offboard(first_setpoint, timeout=None)    # OffboardDenied, CommandTimeout
@@ -14,7 +16,8 @@ Public API (names are stable; the state machine and its tests rely on them)::
     await link.stop_offboard(timeout=None)                     # -> HOLD; CommandDenied, CommandTimeout
     await link.hold(timeout=None); await link.land(timeout=None)
     await link.wait_landed_and_disarm(timeout=None)            # CommandTimeout
-    await link.wait_mode(mode, timeout)                        # CommandTimeout, LinkLost
+    await link.wait_mode(mode, timeout, after=None)            # CommandTimeout, LinkLost; after: a mode_reports
+                                                               # count (only a later heartbeat confirms)
     await link.wait_link_ok(timeout)                           # LinkLost (telemetry back after a loss)
     await link.close()                                         # safe teardown; also ``async with``
     Telemetry ("latest value" caches, None until first received):
@@ -27,14 +30,22 @@ Public API (names are stable; the state machine and its tests rely on them)::
     link.truth_for_log -> TruthForLog | None  (position/velocity NED: ONLY for the flight log)
     link.status_text -> str | None (last STATUSTEXT), link.hover_thrust_source ("autopilot"|"config")
     link.events -> list[(t_monotonic, kind, detail)]; on_event(kind, detail) is called for each
+    link.px4_events -> decoded PX4 events (companion/app/px4events.py); link.mode_reports -> heartbeats seen
 
 Exceptions: every one derives ``LinkError`` and carries a one-line message saying what failed and
 where: ConnectFailed, NotHealthy, ArmDenied, TakeoffFailed, OffboardDenied, OffboardLost,
 CommandDenied, CommandTimeout, LinkLost.
 
 Setpoints: anything with ``roll_deg, pitch_deg, yaw_deg`` (NED/FRD, absolute yaw) and ``thrust``
-(0..1, e.g. ``companion.guidance.Setpoint``); non-finite values are refused, thrust is clamped to
-``[thrust_min, 1]`` (never 0). While offboard is active the link resends the latest setpoint at
+(0..1, e.g. ``companion.guidance.Setpoint``), through the last-line envelope (companion/app/envelope.py):
+non-finite values raise SetpointRejected (nothing sent), the tilt is clamped to ``airframe.max_tilt`` and
+the thrust to ``[thrust_min, 1]`` (never 0), each clamp an ``envelope`` event.
+
+Exposure: URLs that make mavsdk listen on every interface are refused unless
+``link.allow_all_interfaces``; only ``link.system_id`` is flown; the attitude is read raw and only from
+``link.component_id``, and impossible samples (non-finite, non-unit, time running back, tilt jumps) are
+rejected with ``telemetry_rejected`` events, ``telemetry_invalid`` when they persist. PX4 events (EVENT)
+are decoded and emitted as ``px4_event``. While offboard is active the link resends the latest setpoint at
 ``link.setpoint_rate`` and runs a watchdog: no fresh ``set_setpoint`` for
 ``safety.perception_stall_timeout`` -> offboard is stopped (PX4 -> HOLD). This matters because
 MAVSDK itself resends the last setpoint at ~20 Hz for as long as the process lives, so PX4's own
@@ -50,6 +61,7 @@ import asyncio
 import bisect
 import contextlib
 import functools
+import json
 import math
 import threading
 import time
@@ -61,6 +73,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.app.config import LinkConfig
+from companion.app.envelope import SetpointEnvelope
 from companion.frames import R_from_quat_wxyz
 
 
@@ -103,6 +116,14 @@ class CommandTimeout(LinkError):
 
 class LinkLost(LinkError):
     pass
+
+
+class SetpointRejected(LinkError, ValueError):
+    """Upstream produced a setpoint that must never leave the app (non-finite): nothing was sent."""
+
+
+class WrongAutopilot(ConnectFailed):
+    """Heard an autopilot, but not the configured system (link.system_id)."""
 
 
 # -------------------------------------------------------------------------------------- samples
@@ -185,6 +206,35 @@ class TruthForLog:
     t_rx: float
 
 
+MAX_BODY_RATE = 15.0  # rad/s (860 deg/s): faster than any quad this app flies; a bigger jump is not a rotation
+JUMP_MARGIN = 0.35  # rad: estimator resets, jitter of the sample times
+
+
+def attitude_problem(q: list[Any], t_ms: int, prev_q: np.ndarray | None, prev_t_ms: int | None) -> str | None:
+    """Why an attitude sample cannot be PX4's estimate (None: plausible).
+
+    Non-finite or non-unit quaternions, vehicle time running backwards (a spoofer's clock, or an
+    autopilot reboot in flight) and tilt changes faster than MAX_BODY_RATE since the last accepted sample.
+    Only the tilt (the body z axis) is judged: PX4's EKF resets its yaw in flight (measured on SITL: a 47 deg
+    step in 20 ms during take-off), which is a real estimate, not a spoof.
+    """
+    if len(q) != 4 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in q):
+        return f"non-finite quaternion {q}"
+    n = math.sqrt(sum(float(v) * float(v) for v in q))
+    if not 0.9 <= n <= 1.1:
+        return f"quaternion norm {n:.3f} (not a rotation)"
+    if prev_t_ms is not None and t_ms < prev_t_ms:
+        return f"vehicle time went back from {prev_t_ms} to {t_ms} ms"
+    if prev_q is not None and prev_t_ms is not None:
+        z_new = R_from_quat_wxyz(np.asarray(q, float) / n)[:, 2]
+        z_old = R_from_quat_wxyz(prev_q)[:, 2]
+        angle = math.acos(max(-1.0, min(1.0, float(z_new @ z_old))))
+        dt = (t_ms - prev_t_ms) * 1e-3
+        if angle > MAX_BODY_RATE * dt + JUMP_MARGIN:
+            return f"tilt jumped {math.degrees(angle):.0f} deg in {dt * 1e3:.0f} ms"
+    return None
+
+
 class SetpointLike(Protocol):
     roll_deg: float
     pitch_deg: float
@@ -213,12 +263,24 @@ class VehicleLink:
         hover_thrust_fallback: float = 0.5,
         thrust_min: float = 0.1,
         setpoint_timeout: float = 0.5,
+        max_tilt_deg: float = 50.0,
+        reject_limit: int = 5,
         on_event: Callable[[str, dict[str, Any]], None] | None = None,
     ) -> None:
         self.cfg = link if link is not None else LinkConfig()
         self._hover_fallback = float(hover_thrust_fallback)
         self._thrust_min = float(thrust_min)
         self._setpoint_timeout = float(setpoint_timeout)
+        self.envelope = SetpointEnvelope(max_tilt_deg, thrust_min)
+        self._clamps = 0
+        self._last_clamp_event = -math.inf
+        self._reject_limit = int(reject_limit)
+        self._rejects: deque[float] = deque(maxlen=1000)  # monotonic times of rejected telemetry samples
+        self._invalid_reported = False
+        self._att_t_ms: int | None = None  # vehicle time of the last accepted attitude
+        self._event_decoder: Any = None
+        self._event_seq: int | None = None
+        self.px4_events: list[Any] = []  # decoded PX4 events (companion.app.px4events.Px4Event)
         self._on_event = on_event
         self.events: list[tuple[float, str, dict[str, Any]]] = []
         self.hover_thrust_source = "config"
@@ -230,6 +292,7 @@ class VehicleLink:
         self._offboard: Any = None
         self._telemetry: Any = None
         self._param: Any = None
+        self._direct: Any = None
         self._tasks: list[asyncio.Task] = []
         self._inflight: set[asyncio.Future] = set()
         self._closed = False
@@ -252,6 +315,8 @@ class VehicleLink:
         self._last_rx = -math.inf
         self._lost = False
 
+        self._mode_reports = 0
+        self._offboard_requested = False  # OFFBOARD asked for and not stopped since (PX4 may be in it unseen)
         self._offboard_active = False
         self._offboard_end_reason: str | None = None
         self._latest_sp: _Sp | None = None
@@ -268,6 +333,8 @@ class VehicleLink:
             hover_thrust_fallback=cfg.airframe.hover_thrust,
             thrust_min=cfg.airframe.thrust_min,
             setpoint_timeout=cfg.safety.perception_stall_timeout,
+            max_tilt_deg=cfg.airframe.max_tilt,
+            reject_limit=cfg.safety.telemetry_reject_limit,
             on_event=on_event,
         )
 
@@ -369,6 +436,12 @@ class VehicleLink:
         except TimeoutError:
             raise CommandTimeout(f"{what}: no answer within {timeout:.1f} s") from None
 
+    async def _reason_soon(self, wait: float = 0.5) -> None:
+        """A refusal's reason comes as an event or STATUSTEXT beside the ACK, not always before it."""
+        deadline = time.monotonic() + wait
+        while self._status_text is None and time.monotonic() < deadline:
+            await asyncio.sleep(self.POLL)
+
     def _why(self) -> str:
         return f" (autopilot says: {self._status_text})" if self._status_text else ""
 
@@ -382,6 +455,10 @@ class VehicleLink:
                           f"landed {self._landed})")
             await asyncio.sleep(self.POLL)
 
+    async def wait_until(self, pred: Callable[[], bool], timeout: float, what: str) -> None:
+        """Until ``pred()`` holds on the link's telemetry (CommandTimeout naming ``what``, LinkLost)."""
+        await self._wait_until(pred, timeout, what)
+
     async def wait_link_ok(self, timeout: float) -> None:
         """Wait until telemetry flows again after a loss (LinkLost at timeout)."""
         deadline = time.monotonic() + timeout
@@ -390,31 +467,52 @@ class VehicleLink:
                 self.check_link()
             await asyncio.sleep(self.POLL)
 
-    async def wait_mode(self, mode: str, timeout: float) -> None:
-        await self._wait_until(lambda: self._flight_mode == mode, timeout, f"vehicle did not enter {mode}")
+    async def wait_mode(self, mode: str, timeout: float, after: int | None = None) -> None:
+        """Until PX4's heartbeat shows ``mode``; with ``after`` (a ``mode_reports`` count taken when the
+        command was sent) only a heartbeat sent after the command counts: a stale one is no confirmation."""
+        n0 = -1 if after is None else after
+        await self._wait_until(lambda: self._mode_reports > n0 and self._flight_mode == mode, timeout,
+                               f"vehicle did not enter {mode}")
+
+    @property
+    def mode_reports(self) -> int:
+        """Heartbeats (mode reports) received so far."""
+        return self._mode_reports
 
     # ---------------------------------------------------------------------------- connection
     async def connect(self, url: str | None = None, timeout: float | None = None) -> None:
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkConnectionError
         from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.offboard import OffboardAsync
         from mavsdk.asyncio.plugins.param import ParamAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+        from companion.app.config import all_interfaces_reason
+        from companion.app.px4events import EventDecoder
 
         url = url or self.cfg.url
         timeout = self.cfg.connect_timeout if timeout is None else timeout
         if self._mavsdk is not None:
             raise ConnectFailed(f"connect {url}: this link is already connected (make a new VehicleLink)")
+        exposure = all_interfaces_reason(url)
+        if exposure is not None:
+            if not self.cfg.allow_all_interfaces:
+                raise ConnectFailed(f"connect {url}: refused, the URL {exposure} "
+                                    "(link.allow_all_interfaces is false; use udpin://127.0.0.1:PORT)")
+            self._emit("exposed", url=url, why=exposure)
+        try:
+            self._event_decoder = EventDecoder.load(self.cfg.events_metadata or None)
+        except (OSError, ValueError) as e:  # events are then logged by id only
+            self._emit("events_metadata_unreadable", path=self.cfg.events_metadata, error=str(e))
         self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
         try:
             await self._call(f"open {url}", lambda: self._mavsdk.add_any_connection(url), timeout)
         except MavsdkConnectionError as e:
             raise ConnectFailed(f"cannot open connection {url!r}: {e}") from None
-        system = await self._call(f"find an autopilot on {url}",
-                                  lambda: self._mavsdk.first_autopilot(timeout), timeout + 1.0)
-        if system is None:
-            raise ConnectFailed(f"no autopilot heard on {url} within {timeout:.1f} s")
+        system = await self._find_autopilot(url, timeout)
         self._system = system
+        self._direct = MavlinkDirectAsync(system)
         self._action = ActionAsync(system)
         self._offboard = OffboardAsync(system)
         self._telemetry = TelemetryAsync(system)
@@ -431,10 +529,34 @@ class VehicleLink:
             except Exception as e:  # a refused rate is not fatal
                 self._emit("rate_refused", stream=name, error=str(e))
 
+    async def _find_autopilot(self, url: str, timeout: float) -> Any:
+        """The autopilot with MAVLink system id ``link.system_id``; any other system is ignored."""
+        want = self.cfg.system_id
+        deadline = time.monotonic() + timeout
+        heard: set[int] = set()
+        while True:
+            left = deadline - time.monotonic()
+            first = await self._call(f"find an autopilot on {url}",
+                                     functools.partial(self._mavsdk.first_autopilot, max(min(left, 1.0), 0.0)),
+                                     left + 2.0)
+            if first is not None:
+                for sys_ in await self._mavsdk.get_systems():
+                    sid = await sys_.get_system_id()
+                    if sid == want and await sys_.has_autopilot():
+                        return sys_
+                    heard.add(sid)
+            if time.monotonic() >= deadline:
+                if heard:
+                    raise WrongAutopilot(f"no autopilot with system id {want} (link.system_id) on {url} within "
+                                         f"{timeout:.1f} s; heard system(s) {sorted(heard)}")
+                raise ConnectFailed(f"no autopilot heard on {url} within {timeout:.1f} s")
+            await asyncio.sleep(self.POLL if first is not None else 0.0)
+
     def _start_telemetry(self) -> None:
         tel = self._telemetry
         streams: list[tuple[str, Callable[[], Any], Callable[[Any], None]]] = [
-            ("attitude", tel.subscribe_attitude_quaternion, self._on_attitude),
+            ("attitude", lambda: self._direct.subscribe_message("ATTITUDE_QUATERNION"), self._on_attitude_msg),
+            ("events", lambda: self._direct.subscribe_message("EVENT"), self._on_event_msg),
             ("imu", tel.subscribe_imu, self._on_imu),
             ("flight_mode", tel.subscribe_flight_mode, self._on_mode),
             ("armed", tel.subscribe_armed, self._on_armed),
@@ -459,11 +581,77 @@ class VehicleLink:
         except Exception as e:  # report, don't crash the app
             self._emit("telemetry_error", stream=name, error=f"{type(e).__name__}: {e}")
 
-    def _on_attitude(self, q: Any) -> None:
+    def _from_autopilot(self, msg: Any) -> bool:
+        """Only the configured autopilot component (mavsdk already keeps other system ids apart)."""
+        return int(msg.component_id) == self.cfg.component_id
+
+    def _on_attitude_msg(self, msg: Any) -> None:
+        """ATTITUDE_QUATERNION as mavsdk received it (raw: mavsdk's telemetry takes it from any component)."""
+        if not self._from_autopilot(msg):
+            self._reject("attitude", f"from component {msg.component_id}, not {self.cfg.component_id}")
+            return
+        # From the autopilot's ids: the link is alive even if the sample is rejected below (that is
+        # TELEMETRY_INVALID's business, not LINK_LOST's).
+        self._last_rx = time.monotonic()
+        try:
+            f = json.loads(msg.fields_json)
+            q = [f["q1"], f["q2"], f["q3"], f["q4"]]
+            t_ms = int(f["time_boot_ms"])
+        except (ValueError, KeyError, TypeError) as e:
+            self._reject("attitude", f"unreadable ({type(e).__name__})")
+            return
+        self._on_attitude(q, t_ms)
+
+    def _on_attitude(self, q: list[Any], t_ms: int) -> None:
+        prev = self._attitude
+        why = attitude_problem(q, t_ms, None if prev is None else prev.q_wxyz, self._att_t_ms)
+        if why is not None:
+            self._reject("attitude", why)
+            return
         now = time.monotonic()
-        self._attitude = AttitudeSample(np.array([q.w, q.x, q.y, q.z]), q.timestamp_us * 1e-6, now)
+        qa = np.array(q, dtype=float)
+        self._attitude = AttitudeSample(qa / np.linalg.norm(qa), t_ms * 1e-3, now)
+        self._att_t_ms = t_ms
         self.attitude_history.add(now, self._attitude.q_wxyz)
         self._last_rx = now
+
+    def _reject(self, what: str, why: str) -> None:
+        """A telemetry sample the controller must not see: an event; a named abort when it persists."""
+        now = time.monotonic()
+        self._rejects.append(now)
+        recent = sum(1 for t in self._rejects if now - t <= 1.0)
+        if recent == 1 or recent % 50 == 0:  # the first of a burst, then every 50th: the log stays readable
+            self._emit("telemetry_rejected", what=what, why=why, recent=recent)
+        if recent >= self._reject_limit and not self._invalid_reported:
+            self._invalid_reported = True
+            self._emit("telemetry_invalid", what=what, why=why, count=recent)
+
+    def _on_event_msg(self, msg: Any) -> None:
+        """A PX4 event (1.15 reports through events, not STATUSTEXT): decoded, logged, the severe ones kept."""
+        if not self._from_autopilot(msg):
+            return
+        try:
+            fields = json.loads(msg.fields_json)
+        except ValueError:
+            return
+        seq = int(fields.get("sequence", -1))
+        if seq == self._event_seq:  # a resend
+            return
+        self._event_seq = seq
+        if self._event_decoder is None:
+            self._emit("px4_event", id=fields.get("id"), level="unknown", text=f"event {fields.get('id')}")
+            return
+        ev = self._event_decoder.decode(fields)
+        self.px4_events.append(ev)
+        if ev.name == "commander_disarmed_by":
+            # PX4 sends the event at once; its heartbeat shows the disarm up to 1 s later. A vehicle that
+            # just lost its motors must not get that second of setpoints.
+            self._on_armed(False)
+        if ev.level == "debug":
+            return
+        if ev.severe:
+            self._status_text = ev.text  # quoted by the next refused command ("autopilot says: ...")
+        self._emit("px4_event", name=ev.name, level=ev.level, text=ev.text, severe=ev.severe)
 
     def _on_imu(self, m: Any) -> None:
         a, w = m.acceleration_frd, m.angular_velocity_frd
@@ -472,6 +660,7 @@ class VehicleLink:
                               m.timestamp_us * 1e-6, time.monotonic())
 
     def _on_mode(self, mode: Any) -> None:
+        self._mode_reports += 1  # one per HEARTBEAT: "seen after the command" means a later count
         name = getattr(mode, "name", str(mode))
         if name != self._flight_mode:
             old, self._flight_mode = self._flight_mode, name
@@ -557,6 +746,32 @@ class VehicleLink:
                 raise CommandTimeout(f"read parameter {name}: no answer from the autopilot") from None
             raise CommandDenied(f"read parameter {name}: {e.result.name}") from None
 
+    async def read_param_int(self, name: str, timeout: float | None = None) -> int:
+        from mavsdk.asyncio.plugins.param import ParamError
+
+        self.check_link()
+        try:
+            return int(await self._call(f"read parameter {name}",
+                                        lambda: self._param.get_param_int(name), timeout))
+        except ParamError as e:
+            if e.result.name == "TIMEOUT":
+                raise CommandTimeout(f"read parameter {name}: no answer from the autopilot") from None
+            raise CommandDenied(f"read parameter {name}: {e.result.name}") from None
+
+    async def failsafe_params(self, timeout: float | None = None) -> dict[str, float | None]:
+        """PX4's failsafe parameters (companion/app/failsafe.py FAILSAFE_PARAMS); None for one it did not give."""
+        from companion.app.failsafe import FAILSAFE_PARAMS
+
+        out: dict[str, float | None] = {}
+        for name, kind in FAILSAFE_PARAMS.items():
+            try:
+                out[name] = float(await (self.read_param_int(name, timeout) if kind == "int"
+                                         else self.read_param(name, timeout)))
+            except LinkError as e:
+                self._emit("param_unread", name=name, error=str(e))
+                out[name] = None
+        return out
+
     async def hover_thrust(self, timeout: float | None = None) -> float:
         """PX4's MPC_THR_HOVER when the autopilot has it and it is plausible, else the config value."""
         try:
@@ -587,6 +802,7 @@ class VehicleLink:
         except ActionError as e:
             if e.result.name == "TIMEOUT":
                 raise CommandTimeout(f"arm: no answer from the autopilot{self._why()}") from None
+            await self._reason_soon()
             raise ArmDenied(f"arm refused by the autopilot: {e.result.name}{self._why()}") from None
         await self._wait_until(lambda: self._armed is True, timeout, "arm: accepted but the vehicle is not armed",
                                ArmDenied)
@@ -602,6 +818,7 @@ class VehicleLink:
             raise ValueError(f"takeoff: altitude must be a positive number of metres (got {altitude_m})")
         try:
             await self._call("set take-off altitude", lambda: self._action.set_takeoff_altitude(altitude_m))
+            n0 = self._mode_reports
             await self._call("takeoff", self._action.takeoff)
         except ActionError as e:
             if e.result.name == "TIMEOUT":
@@ -609,7 +826,9 @@ class VehicleLink:
             raise TakeoffFailed(f"takeoff refused by the autopilot: {e.result.name}{self._why()}") from None
         self._emit("takeoff", altitude=altitude_m)
         # PX4 switches TAKEOFF -> HOLD at the target altitude; anything else means it gave up.
-        await self._wait_until(lambda: self._flight_mode == "TAKEOFF" or self._landed == "IN_AIR",
+        # Judged only on heartbeats sent after the command (PX4: 1 Hz), never on the HOLD it showed before.
+        await self._wait_until(lambda: self._mode_reports > n0 and (self._flight_mode == "TAKEOFF"
+                                                                    or self._landed == "IN_AIR"),
                                min(timeout, 5.0), "takeoff: vehicle never entered TAKEOFF", TakeoffFailed)
 
         def done() -> bool:
@@ -632,6 +851,8 @@ class VehicleLink:
         self.check_link()
         timeout = self.cfg.command_timeout if timeout is None else timeout
         self._stop_offboard_tasks(f"{what} requested")
+        self._offboard_requested = False
+        n0 = self._mode_reports
         try:
             await self._call(what, fn, timeout)
         except ActionError as e:
@@ -639,7 +860,7 @@ class VehicleLink:
                 raise CommandTimeout(f"{what}: no answer from the autopilot{self._why()}") from None
             raise CommandDenied(f"{what} refused by the autopilot: {e.result.name}{self._why()}") from None
         self._emit(what)
-        await self.wait_mode(mode, timeout)
+        await self.wait_mode(mode, max(timeout, self.cfg.mode_timeout), after=n0)
 
     async def wait_landed_and_disarm(self, timeout: float | None = None) -> None:
         """Wait for touchdown and PX4's auto-disarm (COM_DISARM_LAND); disarm ourselves if it doesn't."""
@@ -663,14 +884,25 @@ class VehicleLink:
 
     # ---------------------------------------------------------------------------------- offboard
     def _validated(self, sp: SetpointLike) -> _Sp:
+        """The last-line envelope (companion/app/envelope.py): non-finite -> SetpointRejected, else clamped."""
         try:
             vals = (float(sp.roll_deg), float(sp.pitch_deg), float(sp.yaw_deg), float(sp.thrust))
         except (AttributeError, TypeError, ValueError):
-            raise ValueError(f"setpoint: need roll_deg, pitch_deg, yaw_deg, thrust numbers (got {sp!r})") from None
-        if not all(math.isfinite(v) for v in vals):
-            raise ValueError(f"setpoint: non-finite value refused (roll, pitch, yaw, thrust = {vals})")
-        roll, pitch, yaw, thrust = vals
-        return _Sp(roll, pitch, yaw, min(max(thrust, self._thrust_min), 1.0))
+            raise SetpointRejected(f"setpoint: need roll_deg, pitch_deg, yaw_deg, thrust numbers (got {sp!r})"
+                                   ) from None
+        try:
+            c = self.envelope.check(*vals)
+        except ValueError as e:
+            self._emit("envelope", action="refused", why=str(e))
+            raise SetpointRejected(str(e)) from None
+        if c.clamped:
+            now = time.monotonic()
+            self._clamps += 1
+            if now - self._last_clamp_event >= 1.0:  # one event a second at most, with the count since the last
+                self._emit("envelope", action="clamped", why=c.clamped, count=self._clamps)
+                self._clamps = 0
+                self._last_clamp_event = now
+        return _Sp(c.roll_deg, c.pitch_deg, c.yaw_deg, c.thrust)
 
     async def _send(self, sp: _Sp) -> None:
         from mavsdk.asyncio.plugins.offboard import Attitude
@@ -688,16 +920,19 @@ class VehicleLink:
         sp = self._validated(first_setpoint)
         self._latest_sp = sp
         self._last_fresh = time.monotonic()
+        self._offboard_requested = True
         await self._send(sp)
         await asyncio.sleep(0.2)  # PX4 wants a setpoint stream before it accepts OFFBOARD
         self._status_text = None
+        n0 = self._mode_reports
         try:
             await self._call("start offboard", self._offboard.start, timeout)
         except OffboardError as e:
             if e.result.name == "TIMEOUT":
                 raise CommandTimeout(f"start offboard: no answer from the autopilot{self._why()}") from None
             raise OffboardDenied(f"offboard refused: {e.result.name}{self._why()}") from None
-        await self._wait_until(lambda: self._flight_mode == "OFFBOARD", timeout,
+        await self._wait_until(lambda: self._mode_reports > n0 and self._flight_mode == "OFFBOARD",
+                               max(timeout, self.cfg.mode_timeout),
                                "offboard accepted but the vehicle is not in OFFBOARD", OffboardDenied)
         self._offboard_active = True
         self._offboard_end_reason = None
@@ -816,9 +1051,13 @@ class VehicleLink:
 
         timeout = self.cfg.command_timeout if timeout is None else timeout
         self._stop_offboard_tasks("stopped by the app")
-        if self._flight_mode != "OFFBOARD":
+        requested, self._offboard_requested = self._offboard_requested, False
+        # PX4 may be in OFFBOARD before its 1 Hz heartbeat says so: stop whenever we asked for it, unless the
+        # vehicle is seen in a mode that is not ours (the pilot's: never override it).
+        if self._flight_mode != "OFFBOARD" and not (requested and self._flight_mode in ("HOLD", "TAKEOFF", None)):
             return
         self.check_link()
+        n0 = self._mode_reports
         try:
             await self._call("stop offboard", self._offboard.stop, timeout)
         except OffboardError as e:
@@ -826,7 +1065,7 @@ class VehicleLink:
                 raise CommandTimeout(f"stop offboard: no answer from the autopilot{self._why()}") from None
             raise CommandDenied(f"stop offboard refused: {e.result.name}{self._why()}") from None
         self._emit("offboard_stopped")
-        await self.wait_mode("HOLD", timeout)
+        await self.wait_mode("HOLD", max(timeout, self.cfg.mode_timeout), after=n0)
 
     # ------------------------------------------------------------------------------- teardown
     async def close(self, timeout: float | None = None) -> None:
@@ -839,7 +1078,7 @@ class VehicleLink:
             return
         self._closed = True
         timeout = self.cfg.command_timeout + 2.0 if timeout is None else timeout
-        if self._offboard_active and self.link_ok and self._flight_mode == "OFFBOARD":
+        if (self._offboard_active or self._offboard_requested) and self.link_ok:
             with contextlib.suppress(Exception):
                 await self.stop_offboard(min(timeout, 3.0))
         self._stop_offboard_tasks("link closed")

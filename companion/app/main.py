@@ -406,6 +406,7 @@ class SimPX4Process:
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                                      bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"},
                                      start_new_session=True, preexec_fn=_die_with_parent)
+        self.remote_port: int | None = None
         self.port = self._read_port(timeout)
 
     def _read_port(self, timeout: float) -> int:
@@ -422,12 +423,17 @@ class SimPX4Process:
             if not line:
                 break
             if line.startswith("PORT "):
-                return int(line.split()[1])
+                parts = line.split()  # "PORT <own> REMOTE <where mavsdk listens>"
+                self.remote_port = int(parts[3]) if len(parts) >= 4 and parts[3].isdigit() else None
+                return int(parts[1])
         self.stop()
         raise RuntimeError(f"simulated PX4 did not report its port within {timeout:.0f} s")
 
     @property
     def url(self) -> str:
+        # mavsdk listens on 127.0.0.1 and the sim sends there, as with PX4 SITL: nothing binds 0.0.0.0.
+        if self.remote_port is not None:
+            return f"udpin://127.0.0.1:{self.remote_port}"
         return f"udpout://127.0.0.1:{self.port}"
 
     def command(self, line: str) -> None:

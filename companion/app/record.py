@@ -265,4 +265,8 @@ def add_record_arguments(p: Any) -> None:
 
 
 def record_kwargs(args: Any) -> dict[str, Any]:
+    from companion.configbase import ConfigError
+
+    if getattr(args, "record", None) and not args.record_max_mb > 0:
+        raise ConfigError(f"--record-max-mb {args.record_max_mb}: must be > 0")
     return {"fmt": args.record_format, "max_bytes": int(args.record_max_mb * 1e6)}

@@ -38,6 +38,10 @@ class State(enum.Enum):
     SAFE_PILOT = "SAFE_PILOT"  # the pilot took over; we stopped commanding and never re-enter offboard
     SAFE_FAILSAFE_LINK = "SAFE_FAILSAFE_LINK"  # link lost: we stopped streaming, PX4's own failsafe acts
     ABORT_NOT_ARMED = "ABORT_NOT_ARMED"  # never left the ground (connect/preflight/arm failed)
+    # Terminal states that name what the autopilot reports when none of the above is true of the vehicle.
+    REFUSED = "REFUSED"  # found armed or in the air at start (start=takeoff): the app commanded nothing
+    DISARMED = "DISARMED"  # disarmed in flight, not by the app (kill switch, forced disarm, PX4)
+    AUTOPILOT = "AUTOPILOT"  # PX4 flies a mode of its own (named in the reason); Hold was not confirmed
 
     @property
     def terminal(self) -> bool:
@@ -50,7 +54,8 @@ class State(enum.Enum):
 
 
 SAFE_STATES = frozenset(
-    {State.SAFE_LANDED, State.SAFE_HOLD, State.SAFE_PILOT, State.SAFE_FAILSAFE_LINK, State.ABORT_NOT_ARMED}
+    {State.SAFE_LANDED, State.SAFE_HOLD, State.SAFE_PILOT, State.SAFE_FAILSAFE_LINK, State.ABORT_NOT_ARMED,
+     State.REFUSED, State.DISARMED, State.AUTOPILOT}
 )
 
 
@@ -74,9 +79,15 @@ class Reason(enum.IntEnum):
     SIGNAL = 23  # SIGTERM / SIGINT: orderly hand-over
     CAMERA_FAILED = 24
     NOT_CONFIRMED = 25  # the operator did not confirm the pre-flight summary (companion/app/preflight.py)
+    VEHICLE_BUSY = 26  # armed or in the air at start (start=takeoff): refused
+    UNSAFE_FAILSAFE = 27  # PX4's offboard-loss failsafe would not end in a safe mode: refused before arming
+    DISARMED = 28  # the vehicle was disarmed in flight by someone else
+    SETPOINT_INVALID = 29  # upstream produced a non-finite setpoint: nothing sent, handed over
     # The flight ended normally but not as claimed (companion/app/outcome.py):
     GATE_MISSED = 30  # ground truth: a gate plane crossed outside the radius, or fewer gates than passes claimed
     PASS_NOT_CONFIRMED = 31  # no ground truth: a pass ended on its timeout, without evidence the gate is behind
+    TELEMETRY_INVALID = 32  # attitude/telemetry rejected (non-finite, out of range, spoofed) persistently
+    AUTOPILOT_MODE = 33  # PX4 changed the mode on its own (failsafe land, return, ...): not the pilot, not us
 
 
 _NORMAL: dict[State, frozenset[State]] = {
@@ -96,15 +107,18 @@ _NORMAL: dict[State, frozenset[State]] = {
 }
 # Before the vehicle is armed, a failure can only mean "not armed"; once it may fly, any safe state but that.
 _GROUND = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
-_AIR_SAFE = SAFE_STATES - {State.ABORT_NOT_ARMED}
+_AIR_SAFE = SAFE_STATES - {State.ABORT_NOT_ARMED, State.REFUSED}
 
 TRANSITIONS: dict[State, frozenset[State]] = {
     s: _NORMAL.get(s, frozenset()) | (
         frozenset() if s.terminal else
-        (frozenset({State.ABORT_NOT_ARMED, State.SAFE_HOLD, State.SAFE_LANDED}) if s in _GROUND else _AIR_SAFE)
+        (frozenset({State.ABORT_NOT_ARMED, State.SAFE_HOLD, State.SAFE_LANDED, State.AUTOPILOT, State.SAFE_PILOT,
+                    State.DISARMED}) if s in _GROUND else _AIR_SAFE)
     )
     for s in State
 }
+# Found armed or airborne at pre-flight: refused before any command.
+TRANSITIONS[State.PREFLIGHT] |= {State.REFUSED}
 # Arming can succeed and the take-off then be refused: the vehicle is armed on the ground.
 TRANSITIONS[State.ARM] |= {State.SAFE_LANDED}
 

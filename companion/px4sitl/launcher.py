@@ -249,7 +249,8 @@ class PX4Sitl:
 
     def config_overrides(self) -> list[str]:
         """``--set`` values that point the app at this PX4 (link, ground truth)."""
-        ov = [f"link.url={self.offboard_url}", f"px4.truth_url={self.truth_url}"]
+        # PX4 SITL instance N is MAVLink system N + 1 (MAV_SYS_ID); the link accepts only link.system_id.
+        ov = [f"link.url={self.offboard_url}", f"link.system_id={self.instance + 1}", f"px4.truth_url={self.truth_url}"]
         if self.origin is not None:
             ov.append(f"px4.truth_origin=[{self.origin[0]!r}, {self.origin[1]!r}, {self.origin[2]!r}]")
         return ov

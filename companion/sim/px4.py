@@ -7,38 +7,48 @@ switch commands from stdin, stops on SIGTERM/SIGINT or ``quit``).
 
 Public API (names are stable; the flight app and its tests rely on them)::
 
-    SimPX4(config=None, *, port=0, remote_port=None, params=None, px4_params=None, initial_state=None,
+    SimPX4(config=None, *, port=0, remote_port=0, params=None, px4_params=None, initial_state=None,
            initial_mode="HOLD", heartbeat_hz=1.0, telemetry_hz=50.0, noise=True)
     (an initial_state in the air starts armed, holding in initial_mode: HOLD or POSCTL)
     .start() / .stop() / context manager
-    .port, .url_for_mavsdk ("udpout://127.0.0.1:PORT"; with remote_port=N mavsdk may also use
-    "udpin://127.0.0.1:N", as with PX4 SITL on 14540)
+    .port, .remote_port, .url_for_mavsdk ("udpin://127.0.0.1:REMOTE", as with PX4 SITL on 14540;
+    remote_port=None: "udpout://127.0.0.1:PORT", which makes mavsdk bind 0.0.0.0)
     .truth() -> QuadState copy (ground truth, ENU/FLU)
     .mode (str: POSCTL, HOLD, TAKEOFF, LAND, OFFBOARD), .armed, .landed, .time (sim s)
     .events -> list[(t, what)] copy; .wait_event(prefix, timeout, since=-inf) / .wait_for(pred, timeout)
     .param(name) / .set_param(name, value)
     .setpoint_count, .last_setpoint() -> (t, q_xyzw ENU/FLU, thrust), .stats(), .monotonic_of(t_sim)
     switches: .deny_arming, .deny_offboard, .fail_preflight (bool attributes), .drop_link(on), .silence_commands(on),
-              .pilot_takeover(mode="POSCTL")
+              .pilot_takeover(mode="POSCTL"), .force_disarm(), .corrupt_attitude(on)
     process stdin (one reply line each): deny_arming 0|1, deny_offboard 0|1, fail_preflight 0|1,
               drop 0|1, silence 0|1,
-              takeover MODE, param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit
+              takeover MODE, kill, nan_attitude 0|1, param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit
 
 Events (``what`` strings, ``kind:detail``): ``mode:<MODE>:<why>`` (why = command, failsafe,
-takeoff_done, pilot), ``mode_denied:<main>.<sub>``, ``arm``, ``disarm:<why>`` (command, force,
-auto_land, auto_preflight), ``arm_denied:<why>`` (switch, preflight, in_air), ``offboard_denied:<why>``
-(no_setpoints, switch), ``failsafe:offboard_loss``, ``takeoff``, ``land``, ``touchdown``,
+takeoff_done, pilot, offboard_loss_landed), ``mode_denied:<main>.<sub>``, ``arm``, ``disarm:<why>`` (command,
+force, auto_land, auto_preflight, failsafe), ``arm_denied:<why>`` (switch, preflight, in_air, health),
+``offboard_denied:<why>`` (no_setpoints, switch), ``failsafe:offboard_loss``, ``takeoff``, ``land``, ``touchdown``,
 ``command:<id>``, ``silenced:<id>``, ``param_set:<NAME>``, ``link:dropped``, ``link:restored``.
+
+Like PX4 v1.15 SITL (each point checked against the real build in ../shared/px4-sitl, SIH quad):
+HEARTBEAT at 1 Hz and nothing extra on a change, so a mode or arming change is seen 0.2-1.0 s after
+it happens (``heartbeat_hz`` is a test switch; the default is PX4's); PX4's failsafe defaults
+(``COM_OF_LOSS_T`` 1 s, ``COM_OBL_RC_ACT`` 0 = Position mode, ``COM_RC_IN_MODE`` 1, no RC connected:
+the offboard-loss fallback reports POSCTL in the heartbeat, descends at ``MPC_LAND_SPEED`` and lands,
+auto-disarms, then shows OFFBOARD again and refuses to arm ("Resolve system health failures first")
+until another mode is commanded); PX4 *events* (MAVLink EVENT with PX4's own event ids and
+arguments, decoded by companion/app/px4events.py) for arming, disarming, take-off, landing,
+failsafes and refusals, besides a few STATUSTEXT lines. Like PX4 SITL it sends to a fixed port on
+127.0.0.1 (``remote_port``; 0 picks a free one) so mavsdk listens with ``udpin://127.0.0.1:PORT``
+(``url_for_mavsdk``) and nothing binds all interfaces; its own socket binds 127.0.0.1 only.
 
 Where it departs from PX4 (on purpose): its own modes (takeoff, hold, position, land) fly a
 cascaded P (position) / PI (velocity) controller on ground truth with the true hover thrust (PX4
 flies its EKF and a hover-thrust estimate); the attitude estimate, IMU and barometer come from
-companion/sim/sensors.py (truth + per-run bias + noise); a heartbeat is also sent at once on every
-mode or arming change (PX4 waits for the next 1 Hz tick); the offboard-loss failsafe follows
-``COM_OBL_RC_ACT`` with the sim's default 5 (Hold) — PX4's default 0 (Position mode) also holds
-position when the sticks are centred. OFFBOARD needs an attitude setpoint (SET_ATTITUDE_TARGET) in
-the last ``COM_OF_LOSS_T``; other setpoint types are ignored. It answers whoever sent it a datagram
-in the last 5 s (MAVSDK heartbeats every second); a client that stays silent longer is forgotten.
+companion/sim/sensors.py (truth + per-run bias + noise). OFFBOARD needs an attitude setpoint
+(SET_ATTITUDE_TARGET) in the last ``COM_OF_LOSS_T``; other setpoint types are ignored. Besides
+``remote_port`` it answers whoever sent it a datagram in the last 5 s (MAVSDK heartbeats every
+second); a client that stays silent longer is forgotten. No RC: ``NAV_RCL_ACT`` is never triggered.
 """
 
 from __future__ import annotations
@@ -82,12 +92,19 @@ _MODES: dict[str, tuple[int, int]] = {
 _MODE_BY_CODE = {v: k for k, v in _MODES.items()}
 _POSITION_MODES = ("POSCTL", "HOLD")
 
-# PX4's defaults, except COM_OBL_RC_ACT (see the module docstring). (value, MAV_PARAM_TYPE).
+# PX4 v1.15 SITL SIH's values (read from the real build). (value, MAV_PARAM_TYPE).
 _REAL32, _INT32 = mavlink.MAV_PARAM_TYPE_REAL32, mavlink.MAV_PARAM_TYPE_INT32
 DEFAULT_PX4_PARAMS: dict[str, tuple[float, int]] = {
     "MPC_THR_HOVER": (0.5, _REAL32),  # replaced by the vehicle's true hover thrust unless given
     "COM_OF_LOSS_T": (1.0, _REAL32),
-    "COM_OBL_RC_ACT": (5, _INT32),  # 0 Position, 4 Land, 5 Hold
+    "COM_OBL_RC_ACT": (0, _INT32),  # 0 Position (no RC: descend and land), 3 Return, 4 Land, 5 Hold, 7 Disarm
+    "COM_RC_IN_MODE": (1, _INT32),  # SITL: MAVLink joystick only (none connected here)
+    "NAV_RCL_ACT": (2, _INT32),
+    "COM_RCL_EXCEPT": (0, _INT32),
+    "COM_RC_LOSS_T": (0.5, _REAL32),
+    "NAV_DLL_ACT": (0, _INT32),
+    "COM_DL_LOSS_T": (10, _INT32),
+    "COM_FAIL_ACT_T": (5.0, _REAL32),
     "MIS_TAKEOFF_ALT": (2.5, _REAL32),
     "MPC_TKO_SPEED": (1.5, _REAL32),
     "MPC_LAND_SPEED": (0.7, _REAL32),
@@ -121,6 +138,30 @@ _SENSORS_ALL = (
 def pressure_pa(alt_amsl_m: float) -> float:
     """ISA troposphere pressure at an altitude (the inverse of PX4's baro altitude formula)."""
     return _P0 * (1.0 - 2.25577e-5 * alt_amsl_m) ** 5.25588
+
+
+# MAVLink EVENT (410) and CURRENT_EVENT_SEQUENCE (411): not in this pymavlink's dialects, packed by hand.
+_EVENT_ID, _EVENT_CRC = 410, 160
+_EVENT_SEQ_ID, _EVENT_SEQ_CRC = 411, 106
+_LOG_INFO, _LOG_WARNING, _LOG_CRITICAL = 6, 4, 2  # external log level (low nibble; PX4 sends it twice)
+
+
+def _mav2_frame(seq: int, sysid: int, compid: int, msgid: int, crc_extra: int, payload: bytes) -> bytes:
+    """One MAVLink 2 frame (trailing zero bytes of the payload cut, as the protocol does)."""
+    from pymavlink.generator.mavcrc import x25crc
+
+    body = payload.rstrip(b"\0") or b"\0"
+    hdr = struct.pack("<BBBBBBBHB", 0xFD, len(body), 0, 0, seq, sysid, compid, msgid & 0xFFFF, msgid >> 16)
+    crc = x25crc(hdr[1:] + body)
+    crc.accumulate([crc_extra])
+    return hdr + body + struct.pack("<H", crc.crc)
+
+
+def _free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that is free now (for mavsdk to listen on; the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
 
 
 def _nan_to(x: float, default: float) -> float:
@@ -193,7 +234,7 @@ class SimPX4:
         config: Any = None,
         *,
         port: int = 0,
-        remote_port: int | None = None,
+        remote_port: int | None = 0,
         params: QuadParams | None = None,
         px4_params: Mapping[str, float] | None = None,
         initial_state: QuadState | None = None,
@@ -226,8 +267,11 @@ class SimPX4:
             self._params[name] = (float(value), self._params[name][1])
 
         self._port_req = int(port)
-        # Like PX4 SITL, which sends to 127.0.0.1:14540: lets a mavsdk that listens (udpin://) find it.
-        self._remote = None if remote_port is None else ("127.0.0.1", int(remote_port))
+        # Like PX4 SITL, which sends to 127.0.0.1:14540: a mavsdk that listens (udpin://127.0.0.1) finds it.
+        if remote_port is not None and not 0 <= int(remote_port) <= 65535:
+            raise ValueError(f"SimPX4: remote_port {remote_port} is not a UDP port (0-65535)")
+        self._remote_req = remote_port
+        self._remote: tuple[str, int] | None = None
         self._heartbeat_dt = 1.0 / heartbeat_hz
         self._default_rates = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat_dt,
@@ -282,6 +326,12 @@ class SimPX4:
         self.deny_arming = False
         self.deny_offboard = False
         self.fail_preflight = False  # SYS_STATUS reports the preflight checks failed; arming is refused
+        self._obl_landed = False  # landed and disarmed by the offboard-loss fallback: refuses to arm (PX4 1.15)
+        self._nan_attitude = False
+        self._was_tko_detected = False
+        self._obl_fallback = False  # flying the no-RC offboard-loss fallback (descend and land, shown as POSCTL)
+        self._event_seq = 0
+        self._events_meta: Any = None
         self.overruns = 0  # physics steps skipped because the thread fell behind real time
         self._busy = 0.0  # s of CPU-bound work in the sim thread (for stats())
         self._t0_mono = math.nan
@@ -291,6 +341,11 @@ class SimPX4:
     def start(self) -> SimPX4:
         if self._thread is not None:
             return self
+        if not 0 <= self._port_req <= 65535:
+            raise ValueError(f"SimPX4: port {self._port_req} is not a UDP port (0-65535)")
+        if self._remote_req is not None:
+            port = int(self._remote_req) or _free_udp_port()
+            self._remote = ("127.0.0.1", port)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         # No SO_REUSEADDR: the port is ours alone (MAVSDK's udpin listeners set it and could share).
         sock.bind(("127.0.0.1", self._port_req))
@@ -325,7 +380,14 @@ class SimPX4:
         return self._sock.getsockname()[1]
 
     @property
+    def remote_port(self) -> int | None:
+        """The port on 127.0.0.1 the sim sends to (mavsdk listens there), None without one."""
+        return None if self._remote is None else self._remote[1]
+
+    @property
     def url_for_mavsdk(self) -> str:
+        if self._remote is not None:
+            return f"udpin://127.0.0.1:{self._remote[1]}"
         return f"udpout://127.0.0.1:{self.port}"
 
     # ------------------------------------------------------------------------------- observation
@@ -433,6 +495,17 @@ class SimPX4:
         with self._lock:
             self._silenced = on
 
+    def corrupt_attitude(self, on: bool) -> None:
+        """On: ATTITUDE_QUATERNION carries NaN (an estimator failure, or a corrupted link)."""
+        with self._lock:
+            self._nan_attitude = on
+
+    def force_disarm(self) -> None:
+        """The kill switch (or a forced disarm from a ground station): motors off wherever the vehicle is."""
+        with self._lock:
+            if self._armed:
+                self._disarm("force")
+
     def pilot_takeover(self, mode: str = "POSCTL") -> None:
         """The pilot flips the mode switch: PX4 leaves OFFBOARD and holds position (POSCTL/HOLD) or lands."""
         if mode not in ("POSCTL", "HOLD", "LAND"):
@@ -462,21 +535,44 @@ class SimPX4:
             self._hold_yaw = self._yaw_of(s.q)
         self._mode = mode
         self._event(f"mode:{mode}:{why}")
-        self._send_heartbeat()  # on change, not only at the next tick (see module docstring)
+        if why in ("command", "pilot"):
+            self._obl_landed = False  # another mode set: PX4's checks pass again
+        # No heartbeat here: like PX4, the change shows at the next 1 Hz tick.
 
     def _arm(self) -> None:
         self._armed = True
         self._armed_at = self._t
         self._pos_ctrl = _PositionController()  # no integrator left over from the last flight
         self._was_airborne = False
+        self._was_tko_detected = False
         self._landed_since = None
         self._event("arm")
-        self._send_heartbeat()
+        self._px4_event("commander_armed_by", _LOG_INFO, 4)  # external command
 
     def _disarm(self, why: str) -> None:
         self._armed = False
         self._event(f"disarm:{why}")
-        self._send_heartbeat()
+        reason = {"auto_land": 6, "auto_preflight": 7, "failsafe": 14}.get(why, 4)
+        self._px4_event("commander_disarmed_by", _LOG_INFO, reason)
+        if self._mode == "POSCTL" and self._obl_fallback:
+            # PX4 1.15 after the offboard-loss landing: shows the user's mode (Offboard) again, refuses to arm.
+            self._obl_fallback = False
+            self._obl_landed = True
+            self._mode = "OFFBOARD"
+            self._event("mode:OFFBOARD:offboard_loss_landed")
+
+    def _px4_event(self, name: str, level: int, *args: float) -> None:
+        """A PX4 event with PX4's own id and argument layout (from the event metadata the app decodes)."""
+        if self._events_meta is None:
+            from companion.app.px4events import EventDecoder
+
+            self._events_meta = EventDecoder.load()
+        eid = self._events_meta.event_id(name)
+        packed = self._events_meta.encode_args(name, *args).ljust(40, b"\0")
+        self._event_seq = (self._event_seq + 1) % 65536
+        payload = struct.pack("<IIHBBB", eid, int(self._t * 1000), self._event_seq, 0, 0,
+                              (level << 4) | level) + packed
+        self._send_raw(_mav2_frame(self._mav.seq, self.SYSID, self.COMPID, _EVENT_ID, _EVENT_CRC, payload))
 
     def _offboard_signal_ok(self) -> bool:
         return self._t - self._sp_time <= self._p("COM_OF_LOSS_T")
@@ -551,7 +647,7 @@ class SimPX4:
             ref = np.array([self._hold_p[0], self._hold_p[1], self._takeoff_alt])
             vz = min(self._pos_ctrl.K_POS_Z * (self._takeoff_alt - s.p[2]), self._p("MPC_TKO_SPEED"))
             return self._pos_ctrl.command(s, ref, self._hold_yaw, hover, self._param_values(), vz, self._dt)
-        if mode == "LAND":
+        if mode == "LAND" or (mode == "POSCTL" and self._obl_fallback):
             ref = np.array([self._hold_p[0], self._hold_p[1], 0.0])
             slow = s.p[2] <= self._p("MPC_LAND_ALT2")
             vz = -self._p("MPC_LAND_SPEED") if slow else -self._p("MPC_Z_VEL_MAX_DN")
@@ -572,10 +668,23 @@ class SimPX4:
             if not self._was_airborne:
                 self._was_airborne = True
             self._landed_since = None
-        if self._mode == "OFFBOARD" and not self._offboard_signal_ok():
+        if self._mode == "OFFBOARD" and self._armed and not self._offboard_signal_ok():
             self._event("failsafe:offboard_loss")
             act = int(self._p("COM_OBL_RC_ACT"))
-            self._set_mode({0: "POSCTL", 4: "LAND"}.get(act, "HOLD"), "failsafe")
+            if act in (0, 1, 2):  # a manual-control mode, but no RC here: PX4 descends and lands
+                self._set_mode("POSCTL", "failsafe")
+                self._obl_fallback = True
+                self._px4_event("commander_failsafe_enter_generic", _LOG_CRITICAL, 0, 2 + act)
+            elif act in (6, 7):
+                self._set_mode("HOLD", "failsafe")
+                self._px4_event("commander_failsafe_enter_generic", _LOG_CRITICAL, 0, 10 if act == 6 else 9)
+                self._disarm("failsafe")
+            else:
+                self._set_mode({3: "LAND", 4: "LAND"}.get(act, "HOLD"), "failsafe")
+                self._px4_event("commander_failsafe_enter_generic", _LOG_CRITICAL, 0, {3: 6, 4: 7}.get(act, 5))
+        if self._mode == "TAKEOFF" and self._armed and not s.on_ground and not self._was_tko_detected:
+            self._was_tko_detected = True
+            self._px4_event("commander_takeoff_detected", _LOG_INFO)
         if self._mode == "TAKEOFF" and s.p[2] >= self._takeoff_alt - 0.1:
             self._set_mode("HOLD", "takeoff_done")
             self._hold_p[2] = self._takeoff_alt  # PX4 loiters at the take-off altitude, not where it switched
@@ -584,6 +693,7 @@ class SimPX4:
                 self._landed_since = self._t
                 if self._was_airborne:
                     self._event("touchdown")
+                    self._px4_event("commander_landing_detected", _LOG_INFO)
             if self._was_airborne and self._t - self._landed_since >= self._p("COM_DISARM_LAND"):
                 self._disarm("auto_land")
             elif not self._was_airborne and self._t - self._armed_at >= self._p("COM_DISARM_PRFLT"):
@@ -647,9 +757,9 @@ class SimPX4:
             if _nan_to(p[0], 0.0) >= 0.5:
                 if self._armed:
                     return ok
-                if self.fail_preflight:
-                    self._event("arm_denied:preflight")
-                    self._statustext("Arming denied: resolve system health failures first")
+                if self.fail_preflight or self._obl_landed:
+                    self._event("arm_denied:health" if self._obl_landed else "arm_denied:preflight")
+                    self._px4_event("commander_arm_denied_resolve_failures", _LOG_CRITICAL)  # no STATUSTEXT (PX4)
                     return denied
                 if self.deny_arming:
                     self._event("arm_denied:switch")
@@ -663,7 +773,7 @@ class SimPX4:
             if not self._armed:
                 return ok
             if not s.on_ground and not force:
-                self._statustext("Disarming denied: not landed")
+                self._px4_event("commander_disarm_denied_not_landed", _LOG_CRITICAL)
                 return denied
             self._disarm("force" if force else "command")
             return ok
@@ -688,6 +798,7 @@ class SimPX4:
             return ok
         if cmd == mavlink.MAV_CMD_NAV_LAND:
             self._event("land")
+            self._px4_event("commander_landing_current_pos", _LOG_INFO)
             return self._request_mode("LAND")
         if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval = int(_nan_to(p[0], -1)), _nan_to(p[1], 0.0)
@@ -765,13 +876,18 @@ class SimPX4:
     def _send(self, msg: Any) -> None:
         if self._dropped or self._sock is None or not self._peers:
             return
-        buf = msg.pack(self._mav)
+        self._send_raw(msg.pack(self._mav))
+
+    def _send_raw(self, buf: bytes) -> None:
+        if self._dropped or self._sock is None or not self._peers:
+            return
         self._mav.seq = (self._mav.seq + 1) % 256
         for addr in list(self._peers):
             try:
                 self._sock.sendto(buf, addr)
             except OSError:
-                self._peers.pop(addr, None)
+                if addr != self._remote:  # the fixed port may simply have no listener yet
+                    self._peers.pop(addr, None)
 
     def _statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
         self._send(self._mav.statustext_encode(severity, text.encode()[:50]))
@@ -833,7 +949,8 @@ class SimPX4:
             wq = self._sensors.attitude_wxyz_ned_frd(s.q)
             rates = flu_to_frd(s.omega)
             if mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION in due:
-                self._send(self._mav.attitude_quaternion_encode(ms, *wq, *rates, [0.0, 0.0, 0.0, 0.0]))
+                q_out = (math.nan, math.nan, math.nan, math.nan) if self._nan_attitude else wq
+                self._send(self._mav.attitude_quaternion_encode(ms, *q_out, *rates, [0.0, 0.0, 0.0, 0.0]))
             if mavlink.MAVLINK_MSG_ID_ATTITUDE in due:
                 roll, pitch, yaw = (math.radians(a) for a in euler_ned_deg_from_R(R_from_quat_wxyz(wq)))
                 self._send(self._mav.attitude_encode(ms, roll, pitch, yaw, *rates))
@@ -869,7 +986,8 @@ class SimPX4:
         if mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE in due:
             self._send(self._mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, self._landed_state()))
         if mavlink.MAVLINK_MSG_ID_SYS_STATUS in due:
-            health = _SENSORS_ALL & ~mavlink.MAV_SYS_STATUS_PREARM_CHECK if self.fail_preflight else _SENSORS_ALL
+            failing = self.fail_preflight or self._obl_landed
+            health = _SENSORS_ALL & ~mavlink.MAV_SYS_STATUS_PREARM_CHECK if failing else _SENSORS_ALL
             self._send(self._mav.sys_status_encode(
                 _SENSORS_ALL, _SENSORS_ALL, health, 200, 16200, 1000, 90, 0, 0, 0, 0, 0, 0, 0, 0, 0))
         if mavlink.MAVLINK_MSG_ID_HOME_POSITION in due:
@@ -881,7 +999,8 @@ class SimPX4:
 # ------------------------------------------------------------------------------ process entry point
 _SWITCH_HELP = (
     "stdin commands: deny_arming 0|1, deny_offboard 0|1, fail_preflight 0|1, drop 0|1, silence 0|1, "
-    "takeover [POSCTL|HOLD|LAND], param NAME VALUE, state, events, wait_event PREFIX SECONDS, quit"
+    "takeover [POSCTL|HOLD|LAND], kill, nan_attitude 0|1, param NAME VALUE, state, events, "
+    "wait_event PREFIX SECONDS, quit"
 )
 
 
@@ -901,6 +1020,10 @@ def _stdin_command(sim: SimPX4, line: str) -> str:
             sim.drop_link(args[0] == "1")
         elif cmd == "silence":
             sim.silence_commands(args[0] == "1")
+        elif cmd == "nan_attitude":
+            sim.corrupt_attitude(args[0] == "1")
+        elif cmd == "kill":
+            sim.force_disarm()
         elif cmd == "takeover":
             sim.pilot_takeover(args[0] if args else "POSCTL")
         elif cmd == "param":
@@ -932,8 +1055,9 @@ def main(argv: list[str] | None = None) -> int:
         description="Simulated PX4 on 127.0.0.1 (MAVLink 2/UDP). Prints 'PORT <n>'; " + _SWITCH_HELP,
     )
     ap.add_argument("--port", type=int, default=0, help="UDP port on 127.0.0.1 (0: a free one)")
-    ap.add_argument("--remote-port", type=int, default=None, metavar="PORT",
-                    help="also send to 127.0.0.1:PORT, for mavsdk listening with udpin:// (PX4 SITL uses 14540)")
+    ap.add_argument("--remote-port", type=int, default=0, metavar="PORT",
+                    help="send to 127.0.0.1:PORT, where mavsdk listens with udpin:// (PX4 SITL uses 14540; "
+                         "0: a free one, printed as 'REMOTE <n>')")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="PX4 parameter, e.g. --param MPC_THR_HOVER=0.42 (repeatable)")
     ap.add_argument("--no-noise", action="store_true", help="perfect sensors")
@@ -965,7 +1089,7 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:
         print(f"companion.sim.px4: cannot bind 127.0.0.1:{args.port} ({e.strerror})", file=sys.stderr)
         return 1
-    print(f"PORT {sim.port}", flush=True)
+    print(f"PORT {sim.port} REMOTE {sim.remote_port}", flush=True)
 
     def read_stdin() -> None:
         for line in sys.stdin:  # EOF (e.g. stdin is /dev/null) only ends the reader, not the sim

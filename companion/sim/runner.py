@@ -349,7 +349,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             est, imu = hover
             acc = imu.imu(quad.specific_force_body(), quad.state.omega).accel  # FLU: z is the thrust axis
             if est.update(t + dt, thrust_cmd, float(acc[2])) is not None:
-                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight)
+                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight, eng)
         k += 1
     if crossing is not None:
         outcome = crossing  # ground truth scores the run, whatever the engagement did after

@@ -21,7 +21,8 @@ def _mode_during(f, state: str) -> set[str]:
     t0 = next(float(r["t"]) for r in st if r["to_state"] == state)
     t1 = next(float(r["t"]) for r in st if float(r["t"]) > t0)
     tel = f["telemetry"]
-    sel = (tel["t"] > t0 + 0.5) & (tel["t"] < t1)  # ENGAGE starts offboard: PX4 switches within 0.5 s
+    # ENGAGE starts offboard: PX4 switches at once but reports it in its 1 Hz heartbeat (0.2 s stream first).
+    sel = (tel["t"] > t0 + 1.3) & (tel["t"] < t1)
     return set(tel["flight_mode"][sel])
 
 

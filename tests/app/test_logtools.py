@@ -122,6 +122,17 @@ def test_log_summary_and_export_match_the_flight_log(sim, tmp_path):
         assert float(a["t"]) == pytest.approx(float(b["t"]), abs=1e-6)
         assert float(a["setpoints/thrust"]) == pytest.approx(float(b["thrust"]), rel=1e-6)
         assert a["setpoints/state"] == b["state"]
+    held_out = tmp_path / "held.csv"
+    res = _companion("log", "export", str(folder), "-o", str(held_out), "--fill", "hold")
+    assert res.returncode == 0, res.stderr
+    held = _rows(held_out)
+    assert [r["t"] for r in held] == [r["t"] for r in merged]
+    first_sp = next(i for i, r in enumerate(merged) if r["setpoints/thrust"] != "")
+    assert all(r["setpoints/thrust"] != "" for r in held[first_sp:])  # held from the first sample on
+    last = None
+    for a, b in zip(merged, held, strict=True):  # a held cell is the last logged value, never a new one
+        last = a["setpoints/thrust"] or last
+        assert b["setpoints/thrust"] == (last or "")
     st_rows = [r for r in merged if r["states/to_state"] != ""]
     assert [r["states/to_state"] for r in st_rows] == [r["to_state"] for r in states]
     assert all(r["states/state_index"].lstrip("-").isdigit() for r in st_rows)

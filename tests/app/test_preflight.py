@@ -56,3 +56,45 @@ def test_companion_fly_asks_on_stdin_and_a_no_is_a_named_ground_abort(sim, tmp_p
     assert "PRE-FLIGHT SUMMARY" in res.stderr and "Type 'yes'" in res.stderr
     assert "NOT_CONFIRMED" in res.stderr
     assert not sim.armed and not any(e.startswith("arm") for _, e in sim.events)
+
+
+def test_summary_measures_a_real_cameras_frame_rate_and_runs_the_detector(sim, tmp_path):
+    """A camera source (a video file read in real time, like a device): 1 s of frames before arming."""
+    import cv2
+    import numpy as np
+
+    from companion.app.main import detector_available
+    from companion.config import load_config
+    from perception.los import CameraModel
+    from perception.render import TRAIN_STYLE, Gate, make_background, render_gate_frame
+
+    if detector_available(load_config()) is not None:
+        pytest.skip("the shipped gate detector is missing")
+    model = CameraModel.from_config(load_config().camera)
+    rng = np.random.default_rng(3)
+    bg = make_background(model.width, model.height, rng, TRAIN_STYLE)
+    video = tmp_path / "cam.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (model.width, model.height))
+    gate = Gate(np.array([10.0, 0.5, -0.3]), np.array([1.0, 0.0, 0.0]), 1.0, "ring", (20, 40, 230), 0.15,
+                up=(0.0, 0.0, -1.0))
+    for k in range(240):  # 8 s: pre-flight reads PX4's heartbeat (1 Hz) and failsafe parameters first
+        img, _ = render_gate_frame(model, model.R_body_cam, np.zeros(3), gate, TRAIN_STYLE, rng, background=bg,
+                                   t=k / 30.0)
+        w.write(img)
+    w.release()
+    shown: list[str] = []
+
+    async def operator(text: str) -> bool:
+        shown.append(text)
+        return False
+
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.camera=source", f"perception.source={video}")
+    reason, folder, _ = asyncio.run(asyncio.wait_for(fly(cfg, plot=False, handle_signals=False, confirm=operator),
+                                                     60.0))
+    assert reason is Reason.NOT_CONFIRMED
+    cam = json.loads((folder / "preflight.json").read_text())["camera"]
+    assert cam["rate_hz"] == pytest.approx(30.0, rel=0.15)  # paced at the file's 30 fps
+    assert cam["frames"] >= 20 and cam["detector_ms_p50"] > 0
+    boxes = int(cam["detector"].split("gate boxes in ")[1])
+    assert boxes >= 0.8 * cam["frames"]  # the detector sees the gate in the frames it was shown
+    assert "measured 3" in shown[0] or "measured 2" in shown[0]

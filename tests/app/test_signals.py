@@ -125,9 +125,10 @@ def test_sigkill_mid_flight_leaves_a_readable_log(sim, tmp_path):
     # At most the last second is lost (flush every log.flush_interval = 0.5 s).
     for topic in ("los", "setpoints", "telemetry", "detections"):
         assert f[topic]["t"].max() >= t_kill_flight - 1.0, topic
-    # mavsdk died with the process: setpoints stopped, PX4's offboard-loss failsafe holds.
+    # mavsdk died with the process: setpoints stopped, PX4's offboard-loss failsafe acts (its default,
+    # COM_OBL_RC_ACT 0 with no RC: the Position-mode fallback descends and lands).
     assert sim.wait_event("failsafe:offboard_loss", timeout=5.0) is not None
-    assert sim.wait_for(lambda: sim.mode == "HOLD", timeout=5.0)
+    assert sim.wait_event("mode:POSCTL:failsafe", timeout=5.0) is not None
 
 
 def test_blocked_event_loop_kills_the_process_so_px4_fails_safe(sim, tmp_path):
@@ -153,3 +154,92 @@ def test_blocked_event_loop_kills_the_process_so_px4_fails_safe(sim, tmp_path):
     n = sim.setpoint_count
     time.sleep(0.5)
     assert sim.setpoint_count == n
+
+
+def _wait_state_file(proc: subprocess.Popen, logdir: Path, state: str, timeout: float = 40.0) -> Path:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, f"companion fly exited early: {proc.stderr.read()}"
+        for states in logdir.glob("*/states.csv"):
+            if f",{state}," in states.read_text():
+                return states.parent
+        time.sleep(0.05)
+    raise TimeoutError(f"companion fly never reached {state}")
+
+
+def test_sigint_during_takeoff_commands_a_confirmed_hold(sim, tmp_path):
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk, extra=("app.takeoff_altitude=8",))
+    try:
+        folder = _wait_state_file(proc, logdir, "TAKEOFF")
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == Reason.SIGNAL.value, err
+    f = read_flight(folder)
+    assert f.state_path()[-2:] == ["TAKEOFF", "SAFE_HOLD"]
+    assert f.states[-1]["reason"] == "SIGINT received; PX4 holds"
+    assert "TAKEOFF -> SAFE_HOLD: SIGINT received; PX4 holds (exit 23 SIGNAL)" in err
+    ev = [e for _, e in sim.events]
+    assert "mode:HOLD:command" in ev and "mode:HOLD:takeoff_done" not in ev  # commanded, before the top
+    assert sim.mode == "HOLD" and sim.armed and sim.truth().p[2] < 7.5
+
+
+def _udp_sockets(pid: int) -> list[str]:
+    """Local addresses (ip:port) of every UDP socket the process holds, from /proc (IPv4 and IPv6)."""
+    import os as _os
+
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = _os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    out = []
+    for table, v6 in ((f"/proc/{pid}/net/udp", False), (f"/proc/{pid}/net/udp6", True)):
+        for line in Path(table).read_text().splitlines()[1:]:
+            cols = line.split()
+            if cols[9] in inodes:
+                ip_hex, port_hex = cols[1].split(":")
+                if v6:
+                    ip = "::" if int(ip_hex, 16) == 0 else ip_hex
+                else:
+                    ip = ".".join(str(b) for b in bytes.fromhex(ip_hex)[::-1])
+                out.append(f"{ip}:{int(port_hex, 16)}")
+    return out
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        kids += [int(c) for c in (task / "children").read_text().split()]
+    return kids
+
+
+@pytest.mark.skipif(not Path("/proc/self/net/udp").exists(), reason="needs Linux /proc")
+def test_companion_sim_binds_only_localhost(tmp_path):
+    """`companion sim`: the app (mavsdk) and the simulated PX4 hold UDP sockets on 127.0.0.1 only."""
+    cmd = [sys.executable, "-m", "companion.cli", "sim", "--no-plot", "--no-status", "--camera", "geometric",
+           "--set", f"log.directory={tmp_path / 'flights'}", "--set", "app.synthetic.distance=25",
+           "--set", "app.takeoff_altitude=5"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            cwd=Path(__file__).resolve().parents[2])
+    try:
+        _wait_state_file(proc, tmp_path / "flights", "ARM", timeout=60.0)  # mavsdk connected, PX4 answering
+        app_socks = _udp_sockets(proc.pid)
+        kids = _children(proc.pid)
+        sim_socks = [s for k in kids for s in _udp_sockets(k)]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=30)
+        finally:
+            _reap(proc)
+    assert kids, "the simulated PX4 runs as a child process"
+    assert app_socks and sim_socks, (app_socks, sim_socks)
+    for s in app_socks + sim_socks:
+        assert s.startswith("127.0.0.1:"), (app_socks, sim_socks)

@@ -195,10 +195,18 @@ def test_drop_link_fires_failsafe_and_link_lost(sim: SimPX4, cfg: Config) -> Non
             assert not link.link_ok
             sim.drop_link(False)
             await link.wait_link_ok(5.0)
-            await link.wait_mode("HOLD", 5.0)
-            with pytest.raises(OffboardLost):  # and it never goes back to OFFBOARD by itself
+            # PX4's default (COM_OBL_RC_ACT 0, no RC): the fallback shows POSCTL, descends and lands.
+            assert any(e == "mode:POSCTL:failsafe" for _, e in sim.events)
+            with pytest.raises(OffboardLost):  # and the app never goes back to OFFBOARD by itself
                 await link.set_setpoint(sp)
-            assert sim.mode == "HOLD"
+            await link._wait_until(lambda: link.armed is False, 20.0, "auto-disarm after the fallback landing")
+            assert sim.landed and not sim.armed
+            # PX4 1.15 then shows Offboard again, disarmed, and refuses to arm until another mode is set.
+            await link.wait_mode("OFFBOARD", 3.0)
+            with pytest.raises(ArmDenied, match="Resolve system health failures first"):
+                await link.arm(timeout=3.0)
+            await link.hold()
+            await link._wait_until(lambda: not link._health_problems(), 5.0, "pre-flight checks pass again")
             assert [e for e in link.events if e[1] == "link_lost"]
             assert [e for e in link.events if e[1] == "link_restored"]
 
@@ -215,11 +223,12 @@ def test_pilot_takeover_is_seen_and_never_overridden(sim: SimPX4, cfg: Config) -
                 await link.set_setpoint(sp)
                 await asyncio.sleep(1 / 30)
             sim.pilot_takeover("POSCTL")
-            await link.wait_mode("POSCTL", 3.0)
+            # The control loop goes on (PX4 shows the change in its next 1 Hz heartbeat) until the link refuses.
             with pytest.raises(OffboardLost, match="now POSCTL"):
-                for _ in range(30):
+                for _ in range(60):
                     await link.set_setpoint(sp)
                     await asyncio.sleep(1 / 30)
+            assert link.flight_mode == "POSCTL"
             await link.stop_offboard()  # must not command HOLD over the pilot
             await asyncio.sleep(1.0)
             assert sim.mode == "POSCTL"
@@ -261,9 +270,13 @@ def test_bad_setpoints_and_urls_are_one_line_errors(sim: SimPX4, cfg: Config) ->
         bad = VehicleLink.from_config(cfg)
         from companion.app.link import ConnectFailed
 
-        with pytest.raises(ConnectFailed, match=r"no autopilot heard on udpout://127\.0\.0\.1:9 within 0\.5 s"):
-            await bad.connect("udpout://127.0.0.1:9", timeout=0.5)
+        with pytest.raises(ConnectFailed, match=r"no autopilot heard on udpin://127\.0\.0\.1:9 within 0\.5 s"):
+            await bad.connect("udpin://127.0.0.1:9", timeout=0.5)
         await bad.close()
+        exposed = VehicleLink.from_config(cfg)
+        with pytest.raises(ConnectFailed, match=r"refused, the URL makes mavsdk bind 0\.0\.0\.0"):
+            await exposed.connect("udpout://127.0.0.1:9", timeout=0.5)
+        await exposed.close()
 
     run(body, 25)
 

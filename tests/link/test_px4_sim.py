@@ -22,6 +22,7 @@ OFFBOARD = (mavlink.MAV_CMD_DO_SET_MODE, 1.0, 6.0, 0.0)
 
 @pytest.mark.timeout(30)
 def test_offboard_needs_setpoints_and_fails_safe_when_they_stop(sim: SimPX4, gcs: RawGcs) -> None:
+    sim.set_param("COM_OBL_RC_ACT", 5)  # Hold (PX4's default 0 is tested through mavsdk in test_link.py)
     gcs.command(*OFFBOARD)
     assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE) == mavlink.MAV_RESULT_DENIED
     assert sim.mode == "HOLD"
@@ -33,12 +34,18 @@ def test_offboard_needs_setpoints_and_fails_safe_when_they_stop(sim: SimPX4, gcs
         gcs.attitude_setpoint(LEVEL, 0.2)
     assert sim.wait_for(lambda: sim.setpoint_count >= 5, 2.0)
     gcs.command(*OFFBOARD)
-    # The heartbeat (sent on the change, before the ACK) reports it the PX4 way: custom_mode = 6 << 16.
-    hb = gcs.recv(lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode == 6 << 16, 2.0)
+    assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE) == mavlink.MAV_RESULT_ACCEPTED
+    # The next 1 Hz heartbeat (none extra on the change, as PX4) reports it the PX4 way: custom_mode = 6 << 16.
+    # Setpoints keep coming meanwhile (else the offboard-loss failsafe may beat the heartbeat).
+    hb = None
+    for _ in range(60):
+        gcs.attitude_setpoint(LEVEL, 0.2)
+        hb = gcs.recv(lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode == 6 << 16, 0.05)
+        if hb is not None:
+            break
     assert hb is not None and hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4 and hb.get_srcComponent() == 1
-    assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE) == mavlink.MAV_RESULT_ACCEPTED
     assert sim.wait_event("mode:OFFBOARD:command", 1.0) is not None
 
     # Setpoints stop (nothing resends them): the failsafe fires no earlier than COM_OF_LOSS_T after the last.
@@ -84,10 +91,10 @@ def test_params_read_set_and_int_encoding(sim: SimPX4, gcs: RawGcs) -> None:
     assert m is not None and m.param_value == pytest.approx(TRUE_HOVER, abs=1e-6)
     assert m.param_type == mavlink.MAV_PARAM_TYPE_REAL32
     # PX4 sends INT32 parameters bytewise inside the float field.
-    gcs.send(gcs.mav.param_request_read_encode(1, 1, b"COM_OBL_RC_ACT", -1))
-    m = gcs.recv(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OBL_RC_ACT", 2.0)
+    gcs.send(gcs.mav.param_request_read_encode(1, 1, b"NAV_RCL_ACT", -1))
+    m = gcs.recv(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "NAV_RCL_ACT", 2.0)
     assert m is not None and m.param_type == mavlink.MAV_PARAM_TYPE_INT32
-    assert int(np.array([m.param_value], "<f4").view("<i4")[0]) == 5
+    assert int(np.array([m.param_value], "<f4").view("<i4")[0]) == 2  # PX4 1.15 SIH: Return
     gcs.send(gcs.mav.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.4, mavlink.MAV_PARAM_TYPE_REAL32))
     m = gcs.recv(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OF_LOSS_T", 2.0)
     assert m is not None and m.param_value == pytest.approx(0.4)
@@ -133,7 +140,8 @@ def test_port_is_exclusive(sim: SimPX4) -> None:
             other.bind(("127.0.0.1", sim.port))
     finally:
         other.close()
-    assert sim.url_for_mavsdk == f"udpout://127.0.0.1:{sim.port}"
+    # mavsdk listens on 127.0.0.1 where the sim sends (as with PX4 SITL): nothing binds every interface.
+    assert sim.url_for_mavsdk == f"udpin://127.0.0.1:{sim.remote_port}"
 
 
 def test_unknown_px4_param_is_one_clear_error() -> None:

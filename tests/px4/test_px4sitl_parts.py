@@ -197,3 +197,15 @@ def test_px4_run_score_from_a_flight_log(tmp_path: Path) -> None:
     assert abs(r["roll_osc_amp_deg"] - 10.0) < 1.5 and abs(r["roll_osc_freq_hz"] - 1.0) < 0.15
     assert abs(r["max_tilt_deg"] - float(np.degrees(np.arccos(np.cos(np.radians(10)) * np.cos(np.radians(20)))))) < 0.5
     assert r["latency_p95_ms"] == 6.0
+
+
+def test_sim_autopilot_px4_without_a_build_says_where_to_look(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "PX4_SITL_DIR"}
+    r = subprocess.run([sys.executable, "-m", "companion.cli", "sim", "--autopilot", "px4", "--no-status",
+                        "--set", f"log.directory={tmp_path}"], capture_output=True, text=True, env=env, timeout=60)
+    assert r.returncode == 2
+    assert "set PX4_SITL_DIR" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not any(tmp_path.iterdir())  # nothing flew, no flight log

@@ -103,3 +103,20 @@ def test_rate_limit_bounds_the_body_rate():
         peak = max(peak, float(np.max(np.abs(s.omega))))
     assert peak <= params.max_rate + 1e-9
     assert peak > 0.9 * params.max_rate
+
+
+def test_command_delay_holds_the_previous_setpoint_for_exactly_the_delay():
+    """cmd_delay: a setpoint reaches the attitude loop cmd_delay after it was given (PX4 SIH's transport lag)."""
+    roll = Rotation.from_euler("x", 20.0, degrees=True).as_quat()
+    delayed = Quadrotor(QuadParams(cmd_delay=0.1), airborne())
+    prompt = Quadrotor(QuadParams(), airborne())
+    delayed.step(1 / 200, LEVEL, 0.5)  # the setpoint held before: level
+    delayed.step(1 / 200, roll, 0.5 / math.cos(math.radians(20.0)))
+    for _ in range(18):  # up to 0.1 s after the roll command: still level
+        s = delayed.step(1 / 200, roll, 0.5 / math.cos(math.radians(20.0)))
+        assert np.allclose(s.omega, 0.0) and np.allclose(s.q, LEVEL)
+    # From then on it follows the command as the undelayed vehicle did 0.1 s earlier.
+    ref = [prompt.step(1 / 200, roll, 0.5 / math.cos(math.radians(20.0))).q.copy() for _ in range(40)]
+    got = [delayed.step(1 / 200, roll, 0.5 / math.cos(math.radians(20.0))).q.copy() for _ in range(40)]
+    assert np.allclose(got[-20:], ref[-21:-1], atol=2e-3)
+    assert Rotation.from_quat(got[-1]).as_euler("xyz", degrees=True)[0] > 5.0
