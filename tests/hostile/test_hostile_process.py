@@ -231,6 +231,8 @@ time.sleep(600)
 def test_lock_name_is_the_vehicle_not_the_baud_rate():
     assert lock_name("serial:///dev/ttyACM0:57600") == lock_name("serial:///dev/ttyACM0:921600")
     assert lock_name("udpin://127.0.0.1:14540") != lock_name("udpin://127.0.0.1:14541")
+    assert lock_name("udpin://127.0.0.1:14540") == lock_name("udpin://0.0.0.0:14540") == lock_name("udp://:14540")
+    assert lock_name("udpout://10.0.0.2:14540") != lock_name("udpout://10.0.0.3:14540")
     assert "/" not in lock_name("serial:///dev/ttyACM0:57600")
 
 
