@@ -11,7 +11,10 @@ from companion.configbase import Number, Seconds, Section
 
 class PerceptionConfig(Section):
     # Detector (perception/detector.py)
-    model: str = Field("", description="path to a YOLOv8-layout ONNX file; empty = the shipped gate detector")
+    model: str = Field(
+        "", description="path to a YOLOv8-layout ONNX file, or the file name of a shipped one in perception/models/ "
+        "(gate_detector_real.onnx); empty = the shipped gate detector",
+    )
     class_name: str = Field("gate", description="class of the target in the model's class list")
     classes: list[str] = Field(
         default_factory=list,

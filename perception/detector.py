@@ -268,6 +268,8 @@ class Detector:
     @classmethod
     def from_config(cls, pc) -> Detector:  # pc: companion.config_perception.PerceptionConfig
         path = Path(pc.model) if pc.model else SHIPPED_MODEL
+        if pc.model and not path.exists() and path.name == str(pc.model) and (MODELS_DIR / path.name).is_file():
+            path = MODELS_DIR / path.name  # a bare file name of a shipped model, e.g. gate_detector_real.onnx
         return cls(
             path, pc.class_name, pc.input_size or None, pc.confidence, pc.nms_iou, pc.backend,
             list(pc.classes) or None, pc.threads,

@@ -10,13 +10,14 @@ count from the budget (printed, and recorded in the JSON, for a rerun with ``--s
     .venv/bin/python tools/train_detector.py --eval-only      # re-measure the shipped model
     .venv/bin/python tools/train_detector.py --world real --init-onnx perception/models/gate_detector.onnx \
         --steps 3000 --threads 2 --out DIR                     # real-world frames (perception.realworld)
-    .venv/bin/python tools/train_detector.py --finetune DATASET --steps 1500 --out DIR   # your labelled frames
+    .venv/bin/python tools/train_detector.py --finetune DATASET --steps 1500   # your labelled frames
 
 ``--finetune DATASET`` (YOLO layout: DATASET/images/*.jpg|png, DATASET/labels/*.txt, class 0 = gate, an
 empty label file = a gate-free frame) starts from the shipped model (or ``--init-onnx``/``--resume``) and
 mixes your frames (half of each batch, flipped and colour-jittered) with rendered real-world frames so the
-detector keeps what it knew. Check the result with ``companion perception eval`` on frames you did NOT
-train on before you configure it (``perception.model``).
+detector keeps what it knew. It writes ./finetuned-detector/gate_detector.onnx (``--out`` to change);
+check it with ``companion perception eval`` on frames you did NOT train on, then configure it
+(``perception.model: finetuned-detector/gate_detector.onnx``).
 
 Output (``--out``, default perception/models/): gate_detector.onnx (opset 17, input
 ``images`` 1x3x320x320 BGR->RGB /255 letterboxed, output [1, 4+nc, N] = cx, cy, w, h in input
@@ -160,9 +161,10 @@ def giou(a, b):
     return iou - (carea - union) / carea, iou
 
 
-def sample(rng: np.random.Generator, cam: PinholeCamera, world: str = "render") -> tuple[np.ndarray, np.ndarray]:
+def sample(rng: np.random.Generator, cam: PinholeCamera, world: str = "render",
+           real_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """One letterboxed training frame and its boxes (K, 4) xyxy in input pixels."""
-    if world == "real" or (world == "mixed" and rng.random() < 0.75):
+    if world == "real" or (world == "mixed" and rng.random() < real_fraction):
         img, xyxy = real_scene(rng)
     else:
         img, box = random_scene(rng, cam, TRAIN_STYLE)
@@ -246,7 +248,7 @@ def train(args: argparse.Namespace) -> None:
         model.load_state_dict(torch.load(args.resume))
     elif args.init_onnx:
         load_onnx_weights(model, args.init_onnx)
-    if args.init_onnx:
+    if args.init_onnx or args.freeze_bn:
         # The exported model had its BN folded into the convs: keep the (identity) BN statistics frozen so the
         # warm start is the exported function; batch statistics would change it from the first step.
         for mod in model.modules():
@@ -260,7 +262,7 @@ def train(args: argparse.Namespace) -> None:
     n_anchor = sum((INPUT // s) ** 2 for s in STRIDES)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
     # Replay pool: rendering is the bottleneck, so each rendered frame is seen a few times (with flips).
-    pool: list[tuple[np.ndarray, np.ndarray]] = [sample(rng, cam, args.world) for _ in range(args.pool)]
+    pool = [sample(rng, cam, args.world, args.real_fraction) for _ in range(args.pool)]
     t0 = time.monotonic()
     # The schedule is in steps, so a run is reproducible from (--seed, --steps). With only --minutes, the
     # step count is fixed from the speed of the first PROBE steps and printed/recorded for reruns.
@@ -279,7 +281,7 @@ def train(args: argparse.Namespace) -> None:
         for g in opt.param_groups:
             g["lr"] = lr
         for _ in range(args.fresh):
-            pool[int(rng.integers(len(pool)))] = sample(rng, cam, args.world)
+            pool[int(rng.integers(len(pool)))] = sample(rng, cam, args.world, args.real_fraction)
         idx = rng.integers(len(pool), size=args.batch)
         imgs, boxes = [], []
         for j, k in enumerate(idx):
@@ -330,8 +332,8 @@ def train(args: argparse.Namespace) -> None:
         step += 1
         if step % 50 == 0:
             print(f"step {step} t {elapsed / 60:.1f} min lr {lr:.2e} loss {ema_loss:.3f} "
-                  f"(cls {float(cls_loss):.3f} box {float(box_loss):.3f})", flush=True)
-        if step % 500 == 0:
+                  f"(cls {float(cls_loss.detach()):.3f} box {float(box_loss.detach()):.3f})", flush=True)
+        if step % args.checkpoint_every == 0:
             torch.save(model.state_dict(), args.out / "gate_detector.pt")
     torch.save(model.state_dict(), args.out / "gate_detector.pt")
     write_model(model, args, total or step, step, round((time.monotonic() - t0) / 60, 1))
@@ -352,10 +354,13 @@ def write_model(model, args: argparse.Namespace, total: int, step: int, minutes:
                        + f" --threads {args.threads}" + (" --hue" if args.hue else "")
                        + (f" --resume {args.resume}" if args.resume else "")
                        + (f" --world {args.world}" if args.world != "render" else "")
+                       + (f" --real-fraction {args.real_fraction}" if args.world == "mixed" else "")
                        + (f" --init-onnx {args.init_onnx}" if args.init_onnx else "")
+                       + (" --freeze-bn" if args.freeze_bn else "")
                        + (f" --finetune {args.finetune}" if args.finetune else "")
                        + (f" --stop-at {step}" if step < total else ""),
-            "world": args.world, "finetune": str(args.finetune) if args.finetune else None,
+            "world": args.world, "real_fraction": args.real_fraction if args.world == "mixed" else None,
+            "finetune": str(args.finetune) if args.finetune else None,
             "init_onnx": str(args.init_onnx) if args.init_onnx else None,
             "augment": "horizontal flip, desaturation towards grey (p 0.5)"
                        + (", hue rotation (p 0.5)" if args.hue else ""),
@@ -431,21 +436,29 @@ def main() -> int:
     p.add_argument("--pool", type=int, default=600, help="rendered frames kept for reuse")
     p.add_argument("--fresh", type=int, default=3, help="new frames rendered per step")
     p.add_argument("--lr", type=float, default=3e-3)
-    p.add_argument("--out", type=Path, default=ROOT / "perception" / "models")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output folder (default perception/models/, with --finetune ./finetuned-detector/)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (results depend on it)")
     p.add_argument("--hue", action="store_true", help="hue-rotation augmentation (stage 2 of the shipped model)")
     p.add_argument("--eval-frames", type=int, default=400)
+    p.add_argument("--checkpoint-every", type=int, default=100, help="steps between saves of DIR/gate_detector.pt")
     p.add_argument("--eval-only", action="store_true")
     p.add_argument("--resume", type=Path, default=None, help="start from this state dict (.pt)")
     p.add_argument("--world", choices=("render", "real", "mixed"), default="render",
-                   help="training frames: perception.render (the stage-1/2 model), perception.realworld, or 3:1 mixed")
-    p.add_argument("--init-onnx", type=Path, default=None, help="start from this exported model (.onnx)")
+                   help="training frames: perception.render (the stage-1/2 model), perception.realworld, or mixed")
+    p.add_argument("--real-fraction", type=float, default=0.5, help="--world mixed: share of realworld frames")
+    p.add_argument("--init-onnx", type=Path, default=None,
+                   help="start from this exported model (.onnx); its BN layers are folded, so they stay frozen")
+    p.add_argument("--freeze-bn", action="store_true",
+                   help="keep BN statistics frozen (for --resume of a run that started from --init-onnx)")
     p.add_argument("--finetune", type=Path, default=None,
                    help="YOLO-layout DATASET of your own labelled frames: half of each batch (see above)")
     p.add_argument("--stop-at", type=int, default=0, help="stop after this many steps of the --steps schedule")
     p.add_argument("--export-checkpoint", type=Path, default=None,
                    help="export this .pt (from a run given by --seed/--steps/--stop-at) instead of training")
     args = p.parse_args()
+    if args.out is None:  # a fine-tune never overwrites the shipped model by default
+        args.out = Path("finetuned-detector") if args.finetune else ROOT / "perception" / "models"
     args.out.mkdir(parents=True, exist_ok=True)
     if args.finetune and not (args.resume or args.init_onnx):
         args.init_onnx = ROOT / "perception" / "models" / "gate_detector.onnx"  # start from the shipped model

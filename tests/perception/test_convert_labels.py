@@ -77,3 +77,27 @@ def test_bad_rows_are_one_line_and_boxes_clip(tmp_path: Path, capsys: pytest.Cap
     err = capsys.readouterr().err
     assert "c.csv:2: corners must be 8 numbers" in err and err.count("\n") == 1
     assert corners_to_yolo(np.array([[-10, -10], [-5, -10], [-5, -5], [-10, -5]]), 100, 100) is None  # off-image
+
+
+def test_finetune_on_a_yolo_folder_is_one_command(tmp_path: Path) -> None:
+    """tools/train_detector.py --finetune DATASET: two steps from the shipped model, exported and loadable."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    import subprocess
+
+    from perception.detector import Detector
+
+    ds = tmp_path / "ds"
+    (ds / "images").mkdir(parents=True)
+    (ds / "labels").mkdir()
+    img = np.full((240, 320, 3), 120, np.uint8)
+    cv2.rectangle(img, (100, 60), (180, 140), (0, 90, 255), 8)
+    cv2.imwrite(str(ds / "images" / "f.jpg"), img)
+    (ds / "labels" / "f.txt").write_text("0 0.4375 0.4167 0.2625 0.35\n")
+    out = tmp_path / "model"
+    tool = Path(__file__).resolve().parents[2] / "tools" / "train_detector.py"
+    r = subprocess.run([sys.executable, str(tool), "--finetune", str(ds), "--steps", "2", "--batch", "2", "--pool", "2",
+                        "--eval-frames", "2", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "fine-tune: 1 frames" in r.stdout
+    Detector(out / "gate_detector.onnx", "gate")  # a valid model in the shipped layout

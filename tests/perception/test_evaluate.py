@@ -112,3 +112,13 @@ def test_match_is_greedy_by_confidence_and_size_bins() -> None:
     assert d2g == [-1, 0, -1] and g2d == [1, -1]  # the more confident duplicate takes the gate
     assert [size_bin(np.array([0, 0, w, 1.0]), 100) for w in (5, 10, 29, 59, 60)] == [
         "small", "medium", "medium", "large", "huge"]
+
+
+def test_a_shipped_model_by_file_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from companion.config_perception import PerceptionConfig
+    from perception.detector import SHIPPED_MODEL, Detector, DetectorError
+
+    monkeypatch.chdir(tmp_path)  # no such file here: the name is looked up in perception/models/
+    assert Detector.from_config(PerceptionConfig(model=SHIPPED_MODEL.name)).path == SHIPPED_MODEL
+    with pytest.raises(DetectorError, match=r"nope\.onnx"):
+        Detector.from_config(PerceptionConfig(model="nope.onnx"))
