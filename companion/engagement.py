@@ -207,12 +207,11 @@ class Engagement:
             return self._end(t, Phase.ABORT, Reason.PILOT_TAKEOVER, what)
         if ph is Phase.ACQUIRE:
             return self._acquire(t, box, q_wxyz_ned_frd)
-        floor = self.limits.cfg.altitude_floor
         if ph is Phase.ENGAGE:
             return self._engage_step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt)
-        if baro_rel_alt is not None and math.isfinite(baro_rel_alt) and baro_rel_alt < floor:
-            return self._end(t, Phase.ABORT, Reason.ALTITUDE_FLOOR,
-                             f"barometric altitude {baro_rel_alt:.1f} m below the floor {floor:.1f} m")
+        below = self.limits.floor(t, baro_rel_alt)
+        if below is not None:
+            return self._end(t, Phase.ABORT, below.reason, below.detail)
         if ph is Phase.PASS:
             return self._pass_step(t, box, valid, q_wxyz_ned_frd)
         return self._recover_step(t, box, valid, q_wxyz_ned_frd)

@@ -67,6 +67,10 @@ class SafetyConfig(Section):
 
     target_lost_timeout: Seconds = Field(1.0, gt=0.0, le=30.0)
     altitude_floor: Meters = Field(2.0, ge=0.0, le=1000.0, description="baro altitude above take-off, m")
+    floor_lookahead: Seconds = Field(
+        1.0, ge=0.0, le=5.0,
+        description="the floor also trips when the barometric altitude, extrapolated this far at its sink rate, "
+        "would be below it (a dive is caught while Hold can still brake it); 0 = the altitude alone")
     altitude_reference: float | None = Field(
         None, ge=-1000.0, le=10000.0,
         description="PX4's barometric altitude (ALTITUDE.altitude_monotonic, m) of the ground the floor is "

@@ -147,3 +147,32 @@ def test_ttc_does_not_trigger_on_noise_right_after_acquisition():
         for i in range(15):
             t = trial * 10 + i / 30
             assert not det.update(t, box(40.0 + rng.normal(0, 1.5), t), True).close, (trial, i)
+
+
+def test_altitude_floor_looks_ahead_at_the_sink_rate():
+    """A dive is caught while there is height left to brake; level flight near the floor and climbs are not."""
+    cfg = SafetyConfig(altitude_floor=2.0, floor_lookahead=1.0)
+    rng = np.random.default_rng(0)
+    dt = 1.0 / 30.0
+
+    def first_trip(h0: float, rate: float, seconds: float = 3.0) -> float | None:
+        lim = SafetyLimits(cfg)
+        for k in range(int(seconds / dt)):
+            t = k * dt
+            h = h0 + rate * t + rng.normal(0.0, 0.1)  # 0.1 m baro noise
+            a = lim.floor(t, h)
+            if a is not None:
+                assert a.reason is Reason.ALTITUDE_FLOOR
+                return h0 + rate * t
+        return None
+
+    # 10 m/s dive from 15 m: the plain floor would trip at 2 m (0.2 s from impact); the look-ahead trips with
+    # about one second of sink left (2 m + 10 m/s x 1 s = 12 m, give or take the slope's noise).
+    h = first_trip(15.0, -10.0)
+    assert h is not None and 9.0 <= h <= 13.0
+    assert first_trip(3.0, 0.0) is None  # level 1 m above the floor, noisy
+    assert first_trip(3.0, +3.0) is None  # climbing
+    # Without a look-ahead it is the altitude alone.
+    lim = SafetyLimits(SafetyConfig(altitude_floor=2.0, floor_lookahead=0.0))
+    trips = [k * dt for k in range(90) if lim.floor(k * dt, 15.0 - 10.0 * k * dt) is not None]
+    assert trips and 15.0 - 10.0 * trips[0] < 2.0
