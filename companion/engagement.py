@@ -12,7 +12,8 @@ Phases::
 
     ACQUIRE --stable track (acquire_frames valid boxes in a row)--> ENGAGE     (PX4 holds until then)
     ACQUIRE --no stable track within acquire_timeout--> LAND (NO_TARGET)
-    ENGAGE  --close (time-to-contact or box size)--> PASS  (on_close=fly_through)
+    ENGAGE  --close (time-to-contact or box size; or the box lost when nearly close)--> PASS
+                                                      (on_close=fly_through)
                                                  \\-> RECOVER (on_close=pull_up: nose up, brake, climb)
     PASS    --evidence: the box gone, or far smaller (the next gate behind)--> RECOVER, pass confirmed
             --pass_timeout without evidence--> RECOVER, pass NOT confirmed (never counted as passed)
@@ -100,6 +101,7 @@ class EngagementParams:
     pass_gone_frames: int = 3  # frames of evidence that the gate is behind
     pass_shrink: float = 0.5  # a box this much smaller than the pass's largest is another gate (behind)
     complete_boxes: bool = True  # boxes cut by one image border are completed to a round gate
+    near_factor: float = 2.0  # the box lost within this factor of a close trigger: the pass has begun
 
     @classmethod
     def from_config(cls, cfg: Config, hover_thrust: float | None = None, f_min: float | None = None,
@@ -166,6 +168,7 @@ class Engagement:
     _gone: int = 0  # frames of "gate behind" evidence
     _old_gone: bool = True  # the last engaged gate has left the view (a track now is a new gate)
     _imu: tuple[np.ndarray | None, float | None] = (None, None)  # this step's accelerometer and time now
+    _last_size: float = 0.0  # larger side of the last box the controller used, px
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -241,27 +244,34 @@ class Engagement:
         out = self.controller.step(t, box, q, *self._imu)
         if getattr(out, "mode", "") == "pn":
             self._last_valid = t
+            self._last_size = max(box.w, box.h) if box is not None else 0.0
         self._note_los(out)
         abort = self.limits.check(t, self._engage_start, self._last_valid, baro)
         if abort is not None:
             return self._end(t, Phase.ABORT, abort.reason, abort.detail, out)
         est = self.close.update(t, box, getattr(out, "mode", "") == "pn")
-        if not est.close:
+        why = f"gate close: {est.why}"
+        if not est.close and not valid and self._near(est):
+            # The gate vanished while close (a detector often loses a ring that fills the image): the pass has
+            # begun. Without this the controller would coast until "target lost" aborted a good pass.
+            why = f"gate lost while close (time-to-contact {est.ttc:.2f} s, box {est.size_frac:.2f} of the width)"
+        elif not est.close:
             return Decision(t, Phase.ENGAGE, out.setpoint, out)
         gp = self.passes[-1]
         gp.t_close = t
-        self._peak = max(box.w, box.h) if valid and box is not None else 0.0
+        self._peak = max(box.w, box.h) if valid and box is not None else self._last_size
         self._gone = 0
         if self.params.on_close == "pull_up":
             gp.status, gp.t_end, gp.evidence = "pulled_up", t, est.why
             self._sp = self._recover_setpoint(q, pull_up=True)
             self._old_gone = False
             self._go(Phase.RECOVER, t)
-            return Decision(t, Phase.RECOVER, self._sp, out, f"pull-up: {est.why}", Phase.ENGAGE,
+            return Decision(t, Phase.RECOVER, self._sp, out, f"pull-up: {why.removeprefix('gate close: ')}",
+                            Phase.ENGAGE,
                             events=(f"gate {gp.gate} intercept: pulled up",))
         self._sp = self._straight_setpoint(q)
         self._go(Phase.PASS, t)
-        return Decision(t, Phase.PASS, self._sp, out, f"gate close: {est.why}", Phase.ENGAGE,
+        return Decision(t, Phase.PASS, self._sp, out, why, Phase.ENGAGE,
                         events=(f"gate {gp.gate} close",))
 
     def _pass_step(self, t: float, box: BoundingBox | None, valid: bool, q: np.ndarray) -> Decision:
@@ -318,6 +328,14 @@ class Engagement:
         return self._end(t, Phase.HANDBACK, Reason.OK, why)
 
     # -- helpers ---------------------------------------------------------------------------------------
+    def _near(self, est: object) -> bool:
+        """Close enough that losing the box means the pass has begun: within ``near_factor`` of a close
+        trigger (time-to-contact or box size)."""
+        c, k = self.close, self.params.near_factor
+        ttc, size = getattr(est, "ttc", math.inf), getattr(est, "size_frac", 0.0)
+        return (c.trigger in ("ttc", "either") and ttc < k * c.ttc_threshold) or (
+            c.trigger in ("size", "either") and size > c.size_threshold / k)
+
     def _go(self, phase: Phase, t: float) -> None:
         self.phase = phase
         self._t_phase = t

@@ -85,7 +85,7 @@ def test_no_stable_track_lands_with_no_target():
     assert r.feed([box()] * 20)[-1].phase is Phase.LAND  # an end is final
 
 
-def _close(r: Run, size: float = 400.0, cx: float = W / 2, cy: float = H / 2):
+def _close(r: Run, size: float = 620.0, cx: float = W / 2, cy: float = H / 2):
     """A box bigger than app.size_threshold of the image width: close by size at once."""
     return r.feed([box(size, cx, cy)])[0]
 
@@ -265,7 +265,23 @@ def test_yawed_vehicle_passes_along_its_los():
     yaw90 = quat_wxyz_from_R(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
     r = Run(make())
     r.feed([box()] * (CFG.app.acquire_frames + 10), q=yaw90)
-    d = r.feed([box(400.0)], q=yaw90)[0]
+    d = r.feed([box(620.0)], q=yaw90)[0]
     assert d.phase is Phase.PASS
     assert d.setpoint.yaw_deg == pytest.approx(90.0, abs=0.5) and abs(d.setpoint.roll_deg) < 1e-6
     assert (P_NED_ENU @ d.setpoint.R_ned_frd[:, 0])[0] == pytest.approx(1.0, abs=1e-3)  # ENU east
+
+
+def test_a_box_lost_when_nearly_close_starts_the_pass_and_one_lost_far_away_does_not():
+    # Far: a 40 px box (0.06 of the width, far below size_threshold / 2), then nothing: coast (target lost later).
+    r = engaged()
+    d = r.feed([None])[0]
+    assert d.phase is Phase.ENGAGE and d.control.mode == "coast"
+    # Near: a box of 0.55 of the width (> size_threshold / near_factor), then the detector loses the ring.
+    assert CFG.app.size_threshold / 2 < 0.55
+    r = engaged()
+    r.feed([box(0.55 * W)] * 3)
+    d = r.feed([None])[0]
+    assert d.phase is Phase.PASS and d.why.startswith("gate lost while close")
+    assert d.setpoint.R_ned_frd[2, 1] == pytest.approx(0.0, abs=1e-9)  # the straight pass, no roll about the LOS
+    end = r.until(Phase.RECOVER, None)
+    assert r.eng.passes[0].status == "confirmed" and end.why == "gate 1 passed (the gate left the view)"

@@ -147,9 +147,10 @@ class AppConfig(Section):
     close_trigger: Literal["ttc", "size", "either"] = Field(
         "either", description="gate about to be passed: box time-to-contact, box size, or either"
     )
-    ttc_threshold: Seconds = Field(0.35, gt=0.0, le=10.0, description="s; box time-to-contact")
+    ttc_threshold: Seconds = Field(0.25, gt=0.0, le=10.0, description="s; box time-to-contact")
     size_threshold: Number = Field(
-        0.45, gt=0.0, le=2.0, description="box size (larger side) as a fraction of the image width"
+        0.95, gt=0.0, le=2.0, description="box size (larger side) as a fraction of the image width; the default "
+        "(the gate spans the image) leaves the close decision to time-to-contact, which scales with speed"
     )
     on_close: Literal["fly_through", "pull_up"] = Field(
         "fly_through",

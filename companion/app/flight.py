@@ -479,7 +479,15 @@ class FlightApp:
     async def _perceive(self, frame: Frame) -> Any:
         if self.perception_in_thread:
             # The detector releases the GIL; running it in a thread keeps the monitors responsive.
-            return await asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame)
+            call = asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame)
+            # A call that never returns (a hung driver or model) must end the flight in every state, not
+            # only under the offboard watchdog: in ACQUIRE the loop would otherwise wait forever.
+            limit = max(2.0, 4.0 * self.cfg.safety.perception_stall_timeout)
+            try:
+                return await asyncio.wait_for(call, limit)
+            except TimeoutError:
+                raise _Tripped(Abort(Reason.PERCEPTION_STALL, f"detector call did not return within "
+                                     f"{limit:.1f} s")) from None
         return self.perception.process(frame)
 
     def _baro_raw(self) -> float | None:

@@ -102,10 +102,10 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     if args.shadow:
         from companion.app.shadow import shadow
 
-        code, folder, _ = asyncio.run(shadow(cfg, duration=args.duration, plot=not args.no_plot, record=args.record,
-                                             record_kw=record_kwargs(args)))
+        code, folder, _ = run_flight_process(shadow(cfg, duration=args.duration, plot=not args.no_plot,
+                                                    record=args.record, record_kw=record_kwargs(args)))
         print(f"companion: shadow log {folder}", file=sys.stderr)
-        return code
+        return exit_when_done(code)
     from companion.app.preflight import stdin_confirm
 
     try:

@@ -12,8 +12,6 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-import numpy as np
-
 from companion.app.config import AppConfig, SafetyConfig
 from companion.app.states import Reason
 from perception.types import BoundingBox
@@ -47,26 +45,33 @@ class CloseDetector:
         self._below = 0
 
     def ttc(self) -> float:
-        """Least-squares slope of size over the recent window: noise on single frames averages out."""
+        """Least-squares slope of size over the recent window: noise on single frames averages out.
+
+        Scalar Python on purpose: the window holds ~8 samples and this runs every frame of every simulated run.
+        """
         if len(self._hist) < self.min_samples:
             return math.inf
         t_last = self._hist[-1][0]
-        pts = [(t, s) for t, s in self._hist if t_last - t <= self.window_s]
+        pts = []
+        for t, s in reversed(self._hist):  # newest first; stop at the window's start
+            if t_last - t > self.window_s:
+                break
+            pts.append((t, s))
+        pts.reverse()
         # A full window only: a slope over a few frames right after acquisition is mostly pixel noise.
-        if len(pts) < self.min_samples or pts[-1][0] - pts[0][0] < 0.8 * self.window_s:
+        n = len(pts)
+        if n < self.min_samples or pts[-1][0] - pts[0][0] < 0.8 * self.window_s:
             return math.inf
-        t = np.array([p[0] for p in pts])
-        s = np.array([p[1] for p in pts])
-        t_mean = float(t.mean())
-        t = t - t_mean
-        denom = float(t @ t)
+        t_mean = sum(t for t, _ in pts) / n
+        s_mean = sum(s for _, s in pts) / n
+        denom = sum((t - t_mean) ** 2 for t, _ in pts)
         if denom <= 0.0:
             return math.inf
-        slope = float(t @ (s - s.mean())) / denom
+        slope = sum((t - t_mean) * (s - s_mean) for t, s in pts) / denom
         if slope <= 0.0:
             return math.inf
         # The fit describes the window's centre; the contact time is the same instant, seen from now.
-        return max(0.0, float(s.mean()) / slope - (t_last - t_mean))
+        return max(0.0, s_mean / slope - (t_last - t_mean))
 
     def update(self, t: float, box: BoundingBox | None, valid: bool) -> CloseEstimate:
         if valid and box is not None:

@@ -3,8 +3,9 @@
 Two apps on one vehicle fight over it (the second arms and "takes off" a vehicle already in the air
 and knocks the first one out). The lock lives in ``$XDG_RUNTIME_DIR`` (else the system temp folder),
 is named after the link URL with what does not name the vehicle left out (a serial port's baud
-rate), and holds the owner's pid. ``flock`` belongs to the open file: the kernel drops it when the
-process ends however it ends (SIGKILL included), so a stale file never blocks the next flight.
+rate, a listening UDP link's address: its port is what two apps would share), and holds the
+owner's pid. ``flock`` belongs to the open file: the kernel drops it when the process ends however
+it ends (SIGKILL included), so a stale file never blocks the next flight.
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ def lock_name(url: str) -> str:
     u = url.strip().lower()
     if u.startswith("serial://"):
         u = re.sub(r":\d+$", "", u)  # serial:///dev/ttyACM0:57600 and :921600 are one vehicle
+    m = re.match(r"^(udpin|udp)://[^/]*:(\d+)$", u)
+    if m:  # a listening link is its local port: udpin://127.0.0.1:14540 and udpin://0.0.0.0:14540 collide
+        u = f"udpin://{m.group(2)}"
     return "companion-" + re.sub(r"[^a-z0-9._-]+", "_", u).strip("_")[:120] + ".lock"
 
 

@@ -40,6 +40,7 @@ _ANG = np.linspace(0.0, 2 * math.pi, _N_RIM, endpoint=False)
 _COS_SIN = np.column_stack((np.cos(_ANG), np.sin(_ANG)))
 _ANG_FINE = np.linspace(0.0, 2 * math.pi, 4 * _N_RIM, endpoint=False)
 _COS_SIN_FINE = np.column_stack((np.cos(_ANG_FINE), np.sin(_ANG_FINE)))  # the visible arc of a cut ring
+_NEXT_FINE = np.roll(np.arange(_ANG_FINE.size), -1)  # chord k joins rim samples k and k + 1
 
 
 @lru_cache(maxsize=64)
@@ -172,26 +173,31 @@ class GeometricCamera:
         camera) clipped to the image rectangle (Liang-Barsky), then the extent of what is left."""
         rim = c + _COS_SIN_FINE @ ab
         front = rim[:, 2] > 1e-3
-        px = np.full((rim.shape[0], 2), np.nan)
-        if front.any():
+        if front.all():
+            px = self.project(rim)
+            p0, p1 = px, px[_NEXT_FINE]
+        else:
+            if front.sum() < 2:
+                return None
+            px = np.zeros((rim.shape[0], 2))
             px[front] = self.project(rim[front])
-        p0, p1 = px, np.roll(px, -1, axis=0)
-        ok = np.isfinite(p0).all(axis=1) & np.isfinite(p1).all(axis=1)
-        p0, p1 = p0[ok], p1[ok]
-        if p0.shape[0] == 0:
-            return None
+            both = front & front[_NEXT_FINE]  # chords with both ends in front of the camera
+            p0, p1 = px[both], px[_NEXT_FINE][both]
+            if p0.shape[0] == 0:
+                return None
         d = p1 - p0
         w, h = float(self.model.width), float(self.model.height)
-        pp = np.stack((-d[:, 0], d[:, 0], -d[:, 1], d[:, 1]), axis=1)
-        qq = np.stack((p0[:, 0], w - p0[:, 0], p0[:, 1], h - p0[:, 1]), axis=1)
+        pp = np.concatenate((-d, d), axis=1)  # (-dx, -dy, dx, dy)
+        qq = np.concatenate((p0, (w, h) - p0), axis=1)  # (x0, y0, w - x0, h - y0)
         with np.errstate(divide="ignore", invalid="ignore"):
             r = qq / pp
-        t0 = np.max(np.where(pp < 0, r, 0.0), axis=1)
-        t1 = np.min(np.where(pp > 0, r, 1.0), axis=1)
-        keep = (t0 <= t1) & ~np.any((pp == 0) & (qq < 0), axis=1)
+        t0 = np.where(pp < 0, r, 0.0).max(axis=1)
+        t1 = np.where(pp > 0, r, 1.0).min(axis=1)
+        keep = (t0 <= t1) & ~((pp == 0) & (qq < 0)).any(axis=1)
         if not keep.any():
             return None
-        ends = np.vstack((p0[keep] + t0[keep, None] * d[keep], p0[keep] + t1[keep, None] * d[keep]))
+        p0, d, t0, t1 = p0[keep], d[keep], t0[keep, None], t1[keep, None]
+        ends = np.concatenate((p0 + t0 * d, p0 + t1 * d))
         lo, hi = ends.min(axis=0), ends.max(axis=0)
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 

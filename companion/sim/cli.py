@@ -88,6 +88,8 @@ def cmd_in_process(args: argparse.Namespace) -> int:
             f", roll-setpoint oscillation {d['roll_osc_amp_deg']:.1f} deg at {d['roll_osc_freq_hz']:.2f} Hz "
             f"(RMS rate {d['roll_osc_rms_rate_dps']:.0f} deg/s)")
         print(f"commanded: max tilt {d['max_tilt_deg']:.1f} deg{osc}")
+    if res.engagement is not None:  # the engagement protocol: how the app's decisions ended
+        print(f"engagement: {res.engagement['end']}, pass {res.engagement['pass_status'] or 'none'}")
     print("success by gate radius: " + ", ".join(f"{k} m: {'yes' if v else 'no'}" for k, v in d["success"].items()))
     if args.json is not None:
         args.json.write_text(json.dumps(d, indent=1))

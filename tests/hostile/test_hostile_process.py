@@ -231,12 +231,16 @@ time.sleep(600)
 def test_lock_name_is_the_vehicle_not_the_baud_rate():
     assert lock_name("serial:///dev/ttyACM0:57600") == lock_name("serial:///dev/ttyACM0:921600")
     assert lock_name("udpin://127.0.0.1:14540") != lock_name("udpin://127.0.0.1:14541")
+    assert lock_name("udpin://127.0.0.1:14540") == lock_name("udpin://0.0.0.0:14540") == lock_name("udp://:14540")
+    assert lock_name("udpout://10.0.0.2:14540") != lock_name("udpout://10.0.0.3:14540")
     assert "/" not in lock_name("serial:///dev/ttyACM0:57600")
 
 
-def test_hung_detector_thread_the_process_still_exits_with_its_outcome(sim, tmp_path):
-    """The detector call never returns (in its worker thread): the watchdog hands over to HOLD, and the process
-    exits with PERCEPTION_STALL (12) instead of waiting for the thread forever."""
+@pytest.mark.parametrize("after", [0.0, 1.2], ids=["in_acquire", "later"])
+def test_hung_detector_thread_the_process_still_exits_with_its_outcome(sim, tmp_path, after):
+    """The detector call never returns (in its worker thread), from the first frame (ACQUIRE: no offboard
+    watchdog there) or later (usually engaged): the flight ends in SAFE_HOLD with PERCEPTION_STALL (12), and
+    the process exits instead of waiting for the thread forever."""
     from companion.app.main import detector_available
     from companion.config import load_config
 
@@ -244,7 +248,7 @@ def test_hung_detector_thread_the_process_still_exits_with_its_outcome(sim, tmp_
         pytest.skip("the shipped gate detector is not available")
     t0 = time.monotonic()
     r = run_fly(sim.url_for_mavsdk, tmp_path / "flights", "app.synthetic.render=image", "app.synthetic.fault=block",
-                "app.synthetic.fault_after=1.2", timeout=150)
+                f"app.synthetic.fault_after={after}", timeout=150)
     dt = time.monotonic() - t0
     assert r.returncode == 12, r.stderr[-3000:]
     assert "still running after the safe end: exiting anyway (exit 12)" in r.stderr
