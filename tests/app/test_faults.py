@@ -141,8 +141,10 @@ def test_los_jump_is_rejected_and_the_flight_goes_on(sim, tmp_path):
     los = f["los"]
     jumps = [t for t, r in zip(los["t"], los["rejected"], strict=True)
              if isinstance(r, str) and r.startswith("LOS jump") and t < t_pass]
-    # Exactly the two injected frames, back to back (near the gate a clipped box may jump too: not counted).
-    assert len(jumps) == 2 and jumps[1] - jumps[0] < 0.1
+    # Exactly the two injected frames, back to back. Near the gate (the last 0.5 s before PASS) a box cut by the
+    # image border may jump too: those are not counted, any other jump is.
+    assert len(jumps) >= 2 and jumps[1] - jumps[0] < 0.1
+    assert all(t > t_pass - 0.5 for t in jumps[2:]), jumps
 
 
 def test_altitude_floor(sim, tmp_path):
