@@ -58,6 +58,7 @@ class Recorder:
         self._index.flush()
         info = {"format": FORMAT, "version": 1, "image_format": fmt, "start_utc": dt.datetime.now(dt.UTC).isoformat(
             timespec="milliseconds"), **(meta or {})}
+        self._info = info
         (self.folder / "meta.json").write_text(json.dumps(info, indent=1, default=str) + "\n", encoding="utf-8")
         self.fmt, self.quality, self.max_bytes, self.t0 = fmt, int(quality), int(max_bytes), float(t0)
         self.free_margin = int(free_margin)
@@ -92,6 +93,14 @@ class Recorder:
         self._thread.join(timeout)
         with contextlib.suppress(Exception):
             self._index.close()
+        # What became of every frame offered: a user (and a test) can tell a writer that fell behind from a
+        # camera that dropped frames.
+        done = {**self._info, "frames_written": self.written, "frames_skipped_queue_full": self.skipped,
+                "stopped": self.stopped}
+        with contextlib.suppress(OSError):
+            tmp = self.folder / "meta.json.tmp"
+            tmp.write_text(json.dumps(done, indent=1, default=str) + "\n", encoding="utf-8")
+            tmp.replace(self.folder / "meta.json")
 
     # -------------------------------------------------------------------------------- writer thread
     def _stop(self, why: str) -> None:

@@ -4,6 +4,7 @@ bounded disk use; a recording that cannot write stops itself and never the fligh
 from __future__ import annotations
 
 import csv
+import json
 import shutil
 import subprocess
 import sys
@@ -47,12 +48,19 @@ def test_record_a_flight_and_replay_the_recording(sim, tmp_path):
     f = read_flight(folder)
     idx = _rows(rec / "index.csv")
     det = f["detections"]
-    # Every frame the app saw is on disk (the writer kept up: no frame skipped at 30 Hz, 640x480 JPEG).
-    assert len(idx) == len(det) and [int(r["frame"]) for r in idx] == [int(k) for k in det["frame"]]
+    # Every frame the app saw is on disk, or counted as skipped when the writer fell behind (a loaded machine:
+    # the flight never waits for the disk); the recorded ones are the app's frames, in order.
+    meta = json.loads((rec / "meta.json").read_text())
+    assert meta["frames_written"] == len(idx) and meta["stopped"] is None
+    assert meta["frames_written"] + meta["frames_skipped_queue_full"] == len(det)
+    seen = [int(k) for k in det["frame"]]
+    rec_frames = [int(r["frame"]) for r in idx]
+    assert rec_frames == sorted(rec_frames) and set(rec_frames) <= set(seen)
+    rows = [seen.index(k) for k in rec_frames]
     for r in idx[:: max(1, len(idx) // 20)]:
         assert (rec / r["file"]).is_file()
     # Capture time on the flight clock: the same as the detections' t_frame.
-    assert np.allclose([float(r["t"]) for r in idx], det["t_frame"], atol=1e-5)
+    assert np.allclose([float(r["t"]) for r in idx], np.asarray(det["t_frame"])[rows], atol=1e-5)
     # The attitude at capture time: PX4's attitude (telemetry) interpolated to the frame time, within the
     # telemetry's 20 Hz log sampling (the app interpolates its own 50 Hz history).
     tel = f["telemetry"]
@@ -76,7 +84,7 @@ def test_record_a_flight_and_replay_the_recording(sim, tmp_path):
     assert np.allclose([float(r["t"]) for r in rep], [float(r["t"]) for r in idx], atol=1e-5)
     assert np.allclose([float(r["qw"]) for r in rep], [float(r["qw"]) for r in idx], atol=1e-6)
     boxes = sum(int(r["box"]) for r in rep)
-    assert boxes > 0.5 * int(np.sum(det["valid"] == 1))  # the detector finds the gate in the recorded frames
+    assert boxes > 0.5 * int(np.sum(np.asarray(det["valid"])[rows] == 1))  # the detector finds the gate again
 
     # Replay --record (the function behind it, on the first 15 frames): the replayed frames again, losslessly.
     from companion.replay import replay
