@@ -714,12 +714,7 @@ class FlightApp:
         self.notifier.status(f"{tr.dst.value}: {tr.reason}")
 
     def _log_detection(self, frame: Frame, box: Any, valid: bool) -> None:
-        t_frame = frame.t - self.log.t0
-        if box is None:
-            self.log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
-        else:
-            self.log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
-                           h=box.h, confidence=box.confidence, valid=valid)
+        log_detection(self.log, frame, box, valid)
 
     def _log_control(self, frame: Frame, d: Decision, lat_ms: float) -> None:
         t_frame = frame.t - self.log.t0
@@ -761,6 +756,16 @@ class FlightApp:
             self.log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
             if self.judge is not None:
                 self.judge.vehicle(truth.t_rx, pn)
+
+
+def log_detection(log: FlightLog, frame: Frame, box: Any, valid: bool) -> None:
+    """One row of the detections topic (the app and shadow mode log the same thing)."""
+    t_frame = frame.t - log.t0
+    if box is None:
+        log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
+    else:
+        log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
+                  h=box.h, confidence=box.confidence, valid=valid)
 
 
 def gate_logger(log: FlightLog, judge: GateJudge | None = None,

@@ -475,8 +475,9 @@ def detector_available(cfg: Config) -> str | None:
         return f"{type(e).__name__}: {e}"
 
 
-def run_sim(args: argparse.Namespace) -> int:
-    """``companion sim``: simulated PX4 (own process) + synthetic camera + the app, in real time."""
+def sim_overrides(args: argparse.Namespace) -> list[str]:
+    """The ``--set`` list of a ``companion sim`` flight (simulated PX4 or PX4 SITL): synthetic camera, the
+    gate motion and seed asked for, and the geometric camera when the detector cannot run."""
     from companion.config import load_config
 
     ov = [*getattr(args, "overrides", []), "app.camera=synthetic"]
@@ -485,11 +486,17 @@ def run_sim(args: argparse.Namespace) -> int:
     if getattr(args, "seed", None) is not None:
         ov.append(f"sim.seed={args.seed}")
     cfg = load_config(args.config, ov)
-    if cfg.app.synthetic.render == "image":
-        why = detector_available(cfg)
-        if why is not None:
-            print(f"companion sim: detector unavailable ({why}); using the geometric camera", file=sys.stderr)
-            ov.append("app.synthetic.render=geometric")
+    if cfg.app.synthetic.render == "image" and (why := detector_available(cfg)) is not None:
+        print(f"companion sim: detector unavailable ({why}); using the geometric camera", file=sys.stderr)
+        ov.append("app.synthetic.render=geometric")
+    return ov
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    """``companion sim``: simulated PX4 (own process) + synthetic camera + the app, in real time."""
+    from companion.config import load_config
+
+    ov = sim_overrides(args)
     with SimPX4Process(args.config, [o for o in ov if o.startswith(("sim.", "airframe."))]) as px4:
         print(f"companion sim: simulated PX4 on 127.0.0.1:{px4.port} (pid {px4.proc.pid})", file=sys.stderr)
         cfg = load_config(args.config, [*ov, f"link.url={px4.url}"])

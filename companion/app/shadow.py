@@ -26,6 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from companion.app.flight import log_detection
+
 if TYPE_CHECKING:
     from companion.config import Config
 
@@ -214,11 +216,7 @@ class _Session:
         self.stats["frames"] += 1
         valid = box is not None and box.is_valid(self.cfg.camera.width, self.cfg.camera.height)
         t_frame = frame.t - self.log.t0
-        if box is None:
-            self.log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
-        else:
-            self.log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
-                           h=box.h, confidence=box.confidence, valid=valid)
+        log_detection(self.log, frame, box, valid)
         if q is None:
             return eng  # no attitude yet: nothing to compute from
         d = eng.step(frame.t, box, q, self._baro_rel())

@@ -46,18 +46,11 @@ def record_px4(folder: Path, px4: PX4Sitl) -> None:
 
 
 def run_px4_sim(args: argparse.Namespace) -> int:
-    from companion.app.main import detector_available, fly, print_flight_report
+    from companion.app.main import fly, print_flight_report, sim_overrides
     from companion.config import load_config
 
-    ov = [*getattr(args, "overrides", []), "app.camera=synthetic"]
-    if getattr(args, "motion", None):
-        ov.append(f"app.synthetic.motion={args.motion}")
-    if getattr(args, "seed", None) is not None:
-        ov.append(f"sim.seed={args.seed}")
+    ov = sim_overrides(args)
     cfg = load_config(args.config, ov)
-    if cfg.app.synthetic.render == "image" and (why := detector_available(cfg)) is not None:
-        print(f"companion sim: detector unavailable ({why}); using the geometric camera", file=sys.stderr)
-        ov.append("app.synthetic.render=geometric")
 
     def say(m: str) -> None:
         print(f"companion sim: {m}", file=sys.stderr, flush=True)
