@@ -102,15 +102,20 @@ class ClosingSpeedEstimator:
         """Advance to frame time ``t`` with this frame's box (or None); ``range_accel`` is the range
         acceleration the vehicle's measured acceleration explains (m/s^2), None without an IMU."""
         p = self.p
+        # Scalar 2-state Kalman filter: numpy's per-call overhead on 2x2 arrays dominated this 30 Hz path.
         if self.x is not None and self.t is not None and t > self.t:
             dt = t - self.t
             imu = range_accel is not None and math.isfinite(range_accel)
             u = range_accel if imu else 0.0
-            F = np.array([[1.0, dt], [0.0, 1.0]])
-            self.x = F @ self.x + np.array([0.5 * dt * dt, dt]) * u
+            x0, x1 = self.x.tolist()
+            (p00, p01), (_, p11) = self.P.tolist()
+            x0, x1 = x0 + dt * x1 + 0.5 * dt * dt * u, x1 + dt * u  # x = F x + B u, F = [[1, dt], [0, 1]]
             q = (p.accel_noise_imu if imu else p.accel_noise) ** 2
-            Q = q * np.array([[dt**3 / 3.0, dt * dt / 2.0], [dt * dt / 2.0, dt]])
-            self.P = F @ self.P @ F.T + Q
+            # P = F P F^T + Q (white-acceleration Q)
+            p00, p01, p11 = (p00 + 2.0 * dt * p01 + dt * dt * p11 + q * dt**3 / 3.0,
+                             p01 + dt * p11 + q * dt * dt / 2.0, p11 + q * dt)
+            self.x = np.array([x0, x1])
+            self.P = np.array([[p00, p01], [p01, p11]])
         if self.t is None or t > self.t:
             self.t = t
         d = self.range_from_box(box) if box is not None else None
@@ -122,12 +127,18 @@ class ClosingSpeedEstimator:
             self.x = np.array([d, -p.v_rel_bar])
             self.P = np.diag([sigma * sigma, (0.5 * p.v_rel_bar) ** 2])
             return
-        S = self.P[0, 0] + sigma * sigma
-        K = self.P[:, 0] / S
-        self.x = self.x + K * (d - self.x[0])
-        self.P = self.P - np.outer(K, self.P[0, :])
-        self.P = 0.5 * (self.P + self.P.T)
+        x0, x1 = self.x.tolist()
+        (p00, p01), (_, p11) = self.P.tolist()
+        s_ = p00 + sigma * sigma
+        k0, k1 = p00 / s_, p01 / s_
+        r = d - x0
+        # x += K r;  P -= K P[0, :] (symmetric by construction)
+        self.x = np.array([x0 + k0 * r, x1 + k1 * r])
+        self.P = np.array([[p00 - k0 * p00, p01 - k0 * p01], [p01 - k0 * p01, p11 - k1 * p01]])
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b))
+    ax, ay, az = a.tolist()
+    bx, by, bz = b.tolist()
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
