@@ -27,6 +27,9 @@ class Checked:
     clamped: str  # "" when the setpoint passed unchanged, else what was clamped
 
 
+TILT_ROUNDING_DEG = 1e-3  # a setpoint this close above max_tilt is rounding (Euler angles in degrees), not an event
+
+
 def tilt_deg(roll_deg: float, pitch_deg: float) -> float:
     """Angle of the thrust axis from vertical for a ZYX (yaw, pitch, roll) attitude: cos = cos(roll) cos(pitch)."""
     c = math.cos(math.radians(roll_deg)) * math.cos(math.radians(pitch_deg))
@@ -54,9 +57,10 @@ class SetpointEnvelope:
             tm = math.radians(self.max_tilt)
             new_r = -math.asin(math.sin(tm) * math.sin(phi))
             new_p = math.atan2(math.sin(tm) * math.cos(phi), math.cos(tm))
-            notes.append(f"tilt {tilt:.1f} deg > airframe.max_tilt {self.max_tilt:.1f} deg "
-                         f"(roll {roll_deg:.1f} -> {math.degrees(new_r):.1f}, pitch {pitch_deg:.1f} -> "
-                         f"{math.degrees(new_p):.1f})")
+            if tilt > self.max_tilt + TILT_ROUNDING_DEG:  # the solver's own setpoints sit exactly on the limit
+                notes.append(f"tilt {tilt:.1f} deg > airframe.max_tilt {self.max_tilt:.1f} deg "
+                             f"(roll {roll_deg:.1f} -> {math.degrees(new_r):.1f}, pitch {pitch_deg:.1f} -> "
+                             f"{math.degrees(new_p):.1f})")
             roll_deg, pitch_deg = math.degrees(new_r), math.degrees(new_p)
         if thrust < self.thrust_min - 1e-9:
             notes.append(f"thrust {thrust:.3f} < airframe.thrust_min {self.thrust_min:.3f}")
