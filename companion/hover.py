@@ -30,7 +30,7 @@ G = 9.81
 class HoverConfig(Section):
     """In-flight hover-thrust estimate (companion/hover.py)."""
 
-    estimate: bool = Field(True, description="estimate the hover thrust from the IMU while we command the "
+    estimate: bool = Field(False, description="estimate the hover thrust from the IMU while we command the "
                                               "thrust, and use it (False: configured / MPC_THR_HOVER value)")
     tau_thrust: Seconds = Field(0.03, ge=0.0, le=1.0, description="first-order lag command -> thrust, s")
     prior_std: Number = Field(0.3, gt=0.0, le=2.0, description="relative std of the starting value")
