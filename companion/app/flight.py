@@ -732,30 +732,34 @@ class FlightApp:
                        roll_deg=sp.roll_deg, pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg, thrust=sp.thrust,
                        latency_ms=lat_ms)
 
-    def _imu_columns(self) -> dict[str, float]:
-        imu = self.link.imu
-        if imu is None:
-            return {}
-        a, g = imu.accel_frd, imu.gyro_frd
-        return {"acc_f": a[0], "acc_r": a[1], "acc_d": a[2], "gyro_f": g[0], "gyro_r": g[1], "gyro_d": g[2]}
-
     def _log_telemetry(self) -> None:
-        link = self.link
-        att = link.attitude
-        q = att.q_wxyz if att is not None else (None,) * 4
-        r = p = y = None
-        if att is not None:
-            r, p, y = euler_ned_deg_from_R(att.R_ned_frd)
-        self.log.write("telemetry", t_att=att.t_rx - self.log.t0 if att is not None else None,
-                       qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
-                       baro_alt_m=self._baro_raw(), flight_mode=link.flight_mode, armed=link.armed,
-                       landed_state=link.landed_state, **self._imu_columns())
-        truth = link.truth_for_log  # log only: scoring and plots, never an input of the controller
-        if truth is not None:
-            pn, vn = truth.position_ned, truth.velocity_ned
-            self.log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
-            if self.judge is not None:
-                self.judge.vehicle(truth.t_rx, pn)
+        truth = log_telemetry(self.log, self.link)
+        if truth is not None and self.judge is not None:
+            self.judge.vehicle(truth.t_rx, truth.position_ned)
+
+
+def log_telemetry(log: FlightLog, link: Any) -> Any:
+    """One row of the telemetry topic and, where the link has it, of truth (the app and shadow mode alike).
+    Returns the truth sample logged (None without truth) for the app's gate judge."""
+    att = link.attitude
+    q = att.q_wxyz if att is not None else (None,) * 4
+    r = p = y = None
+    if att is not None:
+        r, p, y = euler_ned_deg_from_R(att.R_ned_frd)
+    imu, b = link.imu, link.baro
+    extra = {}
+    if imu is not None:
+        a, g = imu.accel_frd, imu.gyro_frd
+        extra = {"acc_f": a[0], "acc_r": a[1], "acc_d": a[2], "gyro_f": g[0], "gyro_r": g[1], "gyro_d": g[2]}
+    log.write("telemetry", t_att=att.t_rx - log.t0 if att is not None else None,
+              qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
+              baro_alt_m=None if b is None else b.altitude_raw_m, flight_mode=link.flight_mode, armed=link.armed,
+              landed_state=link.landed_state, **extra)
+    truth = link.truth_for_log  # log only: scoring and plots, never an input of the controller
+    if truth is not None:
+        pn, vn = truth.position_ned, truth.velocity_ned
+        log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
+    return truth
 
 
 def log_detection(log: FlightLog, frame: Frame, box: Any, valid: bool) -> None:

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from companion.app.flight import log_detection
+from companion.app.flight import log_detection, log_telemetry
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -248,29 +248,8 @@ class _Session:
         return eng
 
     async def _telemetry(self, stop: asyncio.Event) -> None:
-        from companion.frames import euler_ned_deg_from_R
-
         while not stop.is_set():
-            link = self.link
-            att = link.attitude
-            q = att.q_wxyz if att is not None else (None,) * 4
-            r = p = y = None
-            if att is not None:
-                r, p, y = euler_ned_deg_from_R(att.R_ned_frd)
-            imu = link.imu
-            extra = {}
-            if imu is not None:
-                a, g = imu.accel_frd, imu.gyro_frd
-                extra = {"acc_f": a[0], "acc_r": a[1], "acc_d": a[2], "gyro_f": g[0], "gyro_r": g[1], "gyro_d": g[2]}
-            b = link.baro
-            self.log.write("telemetry", t_att=att.t_rx - self.log.t0 if att is not None else None,
-                           qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
-                           baro_alt_m=None if b is None else b.altitude_raw_m, flight_mode=link.flight_mode,
-                           armed=link.armed, landed_state=link.landed_state, **extra)
-            truth = link.truth_for_log
-            if truth is not None:
-                pn, vn = truth.position_ned, truth.velocity_ned
-                self.log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
+            log_telemetry(self.log, self.link)
             await asyncio.sleep(0.05)
 
     def summary(self, reason: Any, detail: str) -> dict[str, Any]:
