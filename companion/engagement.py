@@ -22,8 +22,10 @@ Phases::
     ENGAGE / PASS / RECOVER --abort--> ABORT (TARGET_LOST, MAX_ENGAGEMENT, ALTITUDE_FLOOR,
                                               PILOT_TAKEOVER, LINK_LOST)
 
-The pass flies straight (``guidance.straight_pass``): zero PN demand, optical axis on the last
-filtered LOS, no roll about it, thrust for level flight; the last PN attitude is never held.
+The pass flies straight (``guidance.straight_pass``): zero PN demand, the last PN attitude never held; with
+the controller's drag estimate (accelerometer) the thrust cancels gravity and drag, so the velocity PN set
+up is kept (a draggy vehicle otherwise loses its lateral speed in the pass), else level flight with the
+optical axis on the last filtered LOS.
 """
 
 from __future__ import annotations
@@ -102,6 +104,7 @@ class EngagementParams:
     pass_shrink: float = 0.5  # a box this much smaller than the pass's largest is another gate (behind)
     complete_boxes: bool = True  # boxes cut by one image border are completed to a round gate
     near_factor: float = 2.0  # the box lost within this factor of a close trigger: the pass has begun
+    pass_keeps_velocity: bool = True  # the pass cancels the measured drag (keeps the velocity) when it is known
 
     @classmethod
     def from_config(cls, cfg: Config, hover_thrust: float | None = None, f_min: float | None = None,
@@ -368,7 +371,8 @@ class Engagement:
         if l is None:  # no LOS was ever filtered (cannot happen after a close estimate): look straight ahead
             R = R_from_quat_wxyz(q)
             l = P_NED_ENU @ R[:, 0]  # noqa: E741
-        sol = guidance.straight_pass(l, f_min, f_max, max_tilt=self.params.max_tilt)
+        drag = getattr(self.controller, "drag_enu", None) if self.params.pass_keeps_velocity else None
+        sol = guidance.straight_pass(l, f_min, f_max, max_tilt=self.params.max_tilt, drag=drag)
         return guidance.to_setpoint(sol.R_W_B, sol.f_th, hover, thrust_min)
 
     def _recover_setpoint(self, q: np.ndarray, pull_up: bool = False) -> Setpoint:
