@@ -156,3 +156,66 @@ def test_keep_ring_in_view_bounds_the_optical_axis_to_los_angle():
     assert on == pytest.approx(bound, abs=1e-6)
     small = _optical_axis_to_los_deg("guidance.keep_ring_in_view=true", "guidance.view_margin=2 deg", size=20.0)
     assert small == pytest.approx(CFG.guidance.gamma_bar, abs=1e-6)  # a small (far) ring: the paper's bound
+
+
+# -- boxes cut by the image border ------------------------------------------------------------------------
+
+
+def _xyxy(x0: float, y0: float, x1: float, y1: float) -> BoundingBox:
+    return BoundingBox.from_xyxy(x0, y0, x1, y1, 0.9, 0.0)
+
+
+def test_a_box_within_three_pixels_of_the_border_is_completed_the_same_way():
+    """A detector's edges are noisy (~1 px): a ring on the top border must be completed in every frame, not in one
+    frame and not in the next (its LOS jumped by half the missing height, tens of pixels)."""
+    from companion.engagement import complete_clipped_box
+
+    centres = []
+    for top in (0.0, 0.8, 1.6, 2.4, 2.99):  # noisy top edges of the same cut ring
+        b = complete_clipped_box(_xyxy(300.0, top, 420.0, 90.0), W, H)
+        assert b.h == pytest.approx(120.0)  # completed to the whole (horizontal) extent
+        centres.append(b.cy)
+    assert max(centres) - min(centres) == pytest.approx(0.0, abs=1e-9)  # anchored at the uncut bottom edge
+    assert centres[0] == pytest.approx(90.0 - 60.0)
+    whole = _xyxy(300.0, 3.5, 420.0, 90.0)  # clear of the border: a whole box, left alone
+    assert complete_clipped_box(whole, W, H) is whole
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.sampled_from(["left", "right", "top", "bottom"]), st.floats(0.0, 3.0), st.floats(20.0, 300.0),
+       st.floats(20.0, 300.0), st.floats(0.2, 0.8))
+def test_completion_of_one_cut_side(side: str, gap: float, a: float, b: float, pos: float):
+    from companion.engagement import complete_clipped_box
+
+    # A box touching one border (within gap px), whole along the other axis, inside the image there.
+    if side in ("top", "bottom"):
+        x0 = pos * (W - a)
+        y0, y1 = (gap, gap + b) if side == "top" else (H - gap - b, H - gap)
+        box = _xyxy(x0, y0, x0 + a, y1)
+    else:
+        y0 = pos * (H - b)
+        x0, x1 = (gap, gap + a) if side == "left" else (W - gap - a, W - gap)
+        box = _xyxy(x0, y0, x1, y0 + b)
+    if max(box.w, box.h) > min(W, H) - 8:  # would touch the opposite border too
+        return
+    out = complete_clipped_box(box, W, H)
+    bx0, by0, bx1, by1 = box.xyxy
+    ox0, oy0, ox1, oy1 = out.xyxy
+    size = max(box.w, box.h)
+    assert out.w >= box.w - 1e-9 and out.h >= box.h - 1e-9  # never shorter than what is visible
+    if side == "top":
+        assert (ox0, ox1, oy1) == pytest.approx((bx0, bx1, by1)) and out.h == pytest.approx(size)
+    elif side == "bottom":
+        assert (ox0, ox1, oy0) == pytest.approx((bx0, bx1, by0)) and out.h == pytest.approx(size)
+    elif side == "left":
+        assert (oy0, oy1, ox1) == pytest.approx((by0, by1, bx1)) and out.w == pytest.approx(size)
+    else:
+        assert (oy0, oy1, ox0) == pytest.approx((by0, by1, bx0)) and out.w == pytest.approx(size)
+
+
+def test_boxes_cut_on_both_sides_or_both_axes_are_left_alone():
+    from companion.engagement import complete_clipped_box
+
+    for b in (_xyxy(0.0, 100.0, W, 200.0), _xyxy(100.0, 0.0, 200.0, H), _xyxy(0.0, 0.0, 100.0, 120.0),
+              _xyxy(2.0, 100.0, W - 2.0, 300.0)):
+        assert complete_clipped_box(b, W, H) is b
