@@ -157,6 +157,15 @@ class GuidanceConfig(Section):
         1.0, ge=0.0, le=1.5, description="fraction of the drag normal to the LOS (from the accelerometer, when the "
         "caller gives it) cancelled in the PN demand; 0 = the paper (drag assumed along the LOS)"
     )
+    delay_compensation: bool = Field(
+        False, description="bring a late frame's LOS rate forward by the velocity our own acceleration added since "
+        "its capture (a Smith predictor; needs the caller's time now and gate_radius > 0; no effect on a frame with "
+        "no age). Off: it lifts the x500's latency results but lowers the SIH profile's (docs/guidance.md)"
+    )
+    delay_compensation_lag: Seconds = Field(
+        0.7, gt=0.0, le=5.0, description="time constant of the modelled response of our acceleration to its command, "
+        "s (latency suite, x500 and racer, 360 runs: 0.7 s best; 0.2-0.4 s over-compensate)"
+    )
     keep_ring_in_view: bool = Field(
         False, description="shrink the FOV bound as the ring grows so its rim stays in the image (a detector's box "
         "of a ring cut by the border pulls the LOS towards the image centre); off by default: it costs forward "
