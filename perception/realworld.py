@@ -175,7 +175,7 @@ def draw_hard_negative(img: np.ndarray, rng: np.random.Generator) -> None:
     """One frame-like non-gate object drawn into img (in place)."""
     h, w = img.shape[:2]
     # windows / glass cabinets most often: the shipped detector's most confident false boxes on real frames
-    kind = int(rng.choice(10, p=[0.2, 0.2, 0.1, 0.1, 0.07, 0.08, 0.08, 0.07, 0.05, 0.05]))
+    kind = int(rng.choice(12, p=[0.17, 0.17, 0.09, 0.09, 0.06, 0.07, 0.07, 0.06, 0.05, 0.05, 0.06, 0.06]))
     pts = _rect_pts(rng, w, h)
     side = float(np.ptp(pts[:, 0]))
     if kind in (0, 1):  # window / glass cabinet: frame + tinted glass + mullions
@@ -234,6 +234,17 @@ def draw_hard_negative(img: np.ndarray, rng: np.random.Generator) -> None:
         p = pts.copy()
         p[:, 1] = p[:, 1].mean() + (p[:, 1] - p[:, 1].mean()) * rng.uniform(0.15, 0.4)  # flat: lies on the floor
         _poly(img, p, col, int(rng.integers(2, 6)) if rng.random() < 0.5 else -1)
+    elif kind == 10:  # a light board / wall panel on its own (it also stands behind gates: not a gate cue)
+        _board_behind(img, rng, pts)
+    elif kind == 11:  # over-exposed lamp, ceiling light streak or white object: a bright blob is not a gate
+        glow = np.zeros_like(img)
+        c = pts.mean(0)
+        ax = (max(int(side * rng.uniform(0.1, 0.5)), 3), max(int(side * rng.uniform(0.04, 0.25)), 2))
+        cv2.ellipse(glow, (int(c[0]), int(c[1])), ax, float(rng.uniform(0, 180)), 0.0,
+                    360.0 if rng.random() < 0.6 else float(rng.uniform(60, 180)), (255, 255, 255),
+                    -1 if rng.random() < 0.6 else max(ax[1] // 2, 2), cv2.LINE_AA)
+        glow = cv2.GaussianBlur(glow, (0, 0), float(rng.uniform(0.5, 3.0)))
+        img[:] = np.maximum(img, glow)
     else:  # lettering / printed text alone
         for _ in range(int(rng.integers(1, 4))):
             _text(img, rng, rng.uniform(0, w), rng.uniform(0, h), rng.uniform(0.4, 2.5),
