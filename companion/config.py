@@ -157,6 +157,16 @@ class GuidanceConfig(Section):
         1.0, ge=0.0, le=1.5, description="fraction of the drag normal to the LOS (from the accelerometer, when the "
         "caller gives it) cancelled in the PN demand; 0 = the paper (drag assumed along the LOS)"
     )
+    keep_ring_in_view: bool = Field(
+        False, description="shrink the FOV bound as the ring grows so its rim stays in the image (a detector's box "
+        "of a ring cut by the border pulls the LOS towards the image centre); off by default: it costs forward "
+        "thrust, and loses the SIH profile's linear_fast chases (docs/guidance.md, Evening session)"
+    )
+    view_margin: Deg = Field(
+        -3.0, ge=-30.0, le=30.0, description="keep_ring_in_view: the rim kept this far inside the view, deg "
+        "(negative: it may reach this far past the border)"
+    )
+    gamma_min: Deg = Field(3.0, gt=0.0, lt=89.0, description="keep_ring_in_view: the FOV bound never below this, deg")
 
 
 class LosFilterConfig(Section):

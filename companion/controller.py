@@ -63,6 +63,11 @@ class ControllerParams:
     closing: ClosingParams | None = None  # None: the paper's fixed v_rel_bar
     drag_compensation: float = 0.0  # fraction of the measured drag normal to the LOS added to the PN demand
     drag_cutoff_hz: float = 2.0  # low-pass on the drag the accelerometer measures
+    # Ring in view (guidance.ring_view_gamma): the FOV bound shrinks as the ring grows so that its rim stays in the
+    # image (rad). view_margin None = off (the paper's fixed gamma_bar).
+    view_margin: float | None = None
+    gamma_min: float = math.radians(3.0)
+    gate_radius: float = 0.0  # m, for the ring's angular size from the range estimate (0: from the box only)
 
 
 def closing_params(cfg: Config) -> ClosingParams | None:
@@ -86,6 +91,7 @@ class PNController:
         self.camera = camera
         self._filter = LosFilter(params.los_cutoff_hz, params.max_dt)
         self._closing = ClosingSpeedEstimator(params.closing, camera) if params.closing is not None else None
+        self._half_fov = half_fov(camera)
         self.reset()
 
     @classmethod
@@ -113,6 +119,9 @@ class PNController:
             rate_cutoff_hz=cfg.los_filter.rate_cutoff,
             closing=closing_params(cfg),
             drag_compensation=cfg.guidance.drag_compensation,
+            view_margin=math.radians(cfg.guidance.view_margin) if cfg.guidance.keep_ring_in_view else None,
+            gamma_min=math.radians(cfg.guidance.gamma_min),
+            gate_radius=cfg.guidance.gate_radius,
         )
         return cls(cp, camera)
 
@@ -143,6 +152,12 @@ class PNController:
     def has_los(self) -> bool:
         return self._l_prev is not None
 
+    @property
+    def drag_enu(self) -> np.ndarray | None:
+        """The filtered aerodynamic acceleration (world ENU, m/s^2) the accelerometer measured, or None (no
+        accelerometer given, or drag_compensation off). The straight pass cancels it."""
+        return None if self._drag is None else self._drag.copy()
+
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray,
              accel_frd: np.ndarray | None = None, t_now: float | None = None) -> ControlOutput:
         """One control step for the frame captured at ``t`` (s), with the attitude at that time and, if the
@@ -162,7 +177,7 @@ class PNController:
             if rejected is None:
                 self._closing_speed(t, box, R_ned_frd, accel_frd)
                 self._update_drag(t, R_ned_frd, accel_frd)
-                return self._pn(t, l_enu, R_ned_frd)
+                return self._pn(t, l_enu, R_ned_frd, box)
         if t_ok:
             self._closing_speed(t, None, R_ned_frd, accel_frd)
             self._update_drag(t, R_ned_frd, accel_frd)
@@ -233,7 +248,28 @@ class PNController:
             return None
         return f"LOS jump ({math.degrees(angle):.1f} deg in {dt * 1e3:.0f} ms)"
 
-    def _pn(self, t: float, l_enu: np.ndarray, R_ned_frd: np.ndarray) -> ControlOutput:
+    def _ring_angle(self, box: BoundingBox | None) -> float:
+        """The ring's angular radius (rad): the larger of the range estimate's (``atan(r / d)``; it carries on
+        through boxes cut by the border) and this box's (half its larger side; an under-estimate when cut)."""
+        a = 0.0
+        d = self._closing.range if self._closing is not None else None
+        if d is not None and self.p.gate_radius > 0.0:
+            a = math.atan2(self.p.gate_radius, max(d, 1e-3))
+        if box is not None:
+            f = float(self.camera.K[0, 0]) if box.w >= box.h else float(self.camera.K[1, 1])
+            a = max(a, math.atan(0.5 * max(box.w, box.h) / f))
+        return a
+
+    def _gamma(self, box: BoundingBox | None) -> GuidanceParams:
+        """The solver's parameters with the FOV bound that keeps the ring in view (when on)."""
+        gp = self.p.guidance
+        if self.p.view_margin is None:
+            return gp
+        g = guidance.ring_view_gamma(gp.gamma_bar, self._half_fov, self._ring_angle(box), self.p.view_margin,
+                                     min(self.p.gamma_min, gp.gamma_bar))
+        return gp if g >= gp.gamma_bar else replace(gp, gamma_bar=g)
+
+    def _pn(self, t: float, l_enu: np.ndarray, R_ned_frd: np.ndarray, box: BoundingBox | None = None) -> ControlOutput:
         l_f = self._filter.update(t, l_enu)
         dt = t - self._t_prev if self._t_prev is not None else 0.0
         rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
@@ -251,7 +287,7 @@ class PNController:
             if h > 1e-6:
                 y_pn = np.array([-ly / h, lx / h, 0.0])  # e_z x l, normalised: the PN frame's y axis
                 a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
-        sol = guidance.solve(l_f, a_n, gp, y_ref=self._body_y_enu(R_ned_frd))
+        sol = guidance.solve(l_f, a_n, self._gamma(box), y_ref=self._body_y_enu(R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
         return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, None, v_rel)
@@ -282,7 +318,7 @@ class PNController:
             return ControlOutput(t, sp, "hover", None, 0.0, zero, 0.0, guidance.G, rejected)
         # Coast: keep flying along the last inertial LOS with no PN demand until the box returns
         # (the app's safety layer decides when "lost" becomes an abort).
-        sol = guidance.solve(self._l_prev, zero, self.p.guidance, y_ref=self._body_y_enu(R_ned_frd))
+        sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._body_y_enu(R_ned_frd))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
         return ControlOutput(t, sp, "coast", P_NED_ENU @ self._l_prev, 0.0, zero, sol.demand_scale, sol.f_th, rejected)
 
@@ -290,3 +326,12 @@ class PNController:
     def _body_y_enu(R_ned_frd: np.ndarray) -> np.ndarray:
         # FLU y = -FRD y; re-expressed in ENU. Only used to orient the PN frame at a vertical LOS.
         return -(P_NED_ENU @ R_ned_frd[:, 1])
+
+
+def half_fov(camera: CameraModel) -> float:
+    """The smallest angle from the optical axis to an image border (rad; pinhole, distortion ignored): a ring
+    within it of the optical axis is in the image whichever way the gate sits."""
+    K = camera.K
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    return min(math.atan2(cx, fx), math.atan2(camera.width - cx, fx), math.atan2(cy, fy),
+               math.atan2(camera.height - cy, fy))

@@ -420,16 +420,28 @@ def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:
 
 
 def straight_pass(l: np.ndarray, f_min: float, f_max: float, y_ref: np.ndarray | None = None,  # noqa: E741
-                  max_tilt: float = math.pi / 2) -> ThrustAttitude:
-    """The gate pass: zero PN demand, optical axis (body x) on the LOS ``l`` (world, unit), no roll about it
-    (body y horizontal: the PN frame with phi = theta = 0) and the thrust whose vertical part carries the
-    weight, ``f = g / (e_z . z_B)`` within [f_min, f_max]. The net acceleration is then horizontal and along
-    the LOS's heading (``-g tan(elevation)``): no climb, no sink, no bank held through the gate.
+                  max_tilt: float = math.pi / 2, drag: np.ndarray | None = None) -> ThrustAttitude:
+    """The gate pass: zero PN demand, no bank held from the PN law, the optical axis on (or nearest to) the LOS
+    ``l`` (world, unit).
 
-    The tilt equals the LOS elevation; a LOS steeper than ``max_tilt`` (rad) gets the axis of the same
-    heading at elevation +-max_tilt (the envelope wins over pointing).
+    Without ``drag``: optical axis on the LOS, no roll about it (body y horizontal: the PN frame with
+    phi = theta = 0) and the thrust whose vertical part carries the weight, ``f = g / (e_z . z_B)`` within
+    [f_min, f_max]. The net acceleration is then horizontal and along the LOS's heading (``-g tan(elevation)``):
+    no climb, no sink. The tilt equals the LOS elevation; a LOS steeper than ``max_tilt`` (rad) gets the axis
+    of the same heading at elevation +-max_tilt (the envelope wins over pointing).
+
+    With ``drag`` (the aerodynamic acceleration the accelerometer measures, world, m/s^2): the thrust cancels
+    gravity and drag, ``t = g e_z - drag``, so the vehicle keeps its velocity (flies straight) through the
+    gate. The straight line PN has aimed at the gate is flown: on a draggy vehicle chasing a moving gate,
+    levelling the thrust instead loses the lateral speed in the last half second (~1 m of miss on the SIH
+    profile, docs/guidance.md "Evening session"). Body x is the LOS projected normal to the thrust axis.
+    Tilt at most ``max_tilt`` (the horizontal part is shortened), ``|t|`` within [f_min, f_max].
     """
     lx, ly, lz = (float(v) for v in l)
+    if drag is not None:
+        dx, dy, dz = (float(v) for v in drag)
+        if all(math.isfinite(v) for v in (dx, dy, dz)):
+            return _drag_pass(np.array([lx, ly, lz]), np.array([-dx, -dy, G - dz]), f_min, f_max, max_tilt, y_ref)
     h = math.hypot(lx, ly)
     elev = math.atan2(lz, h)
     if abs(elev) > max_tilt and h > 1e-9:
@@ -439,3 +451,38 @@ def straight_pass(l: np.ndarray, f_min: float, f_max: float, y_ref: np.ndarray |
     up = float(R_W_PN[2, 2])  # vertical part of the thrust axis: cos(LOS elevation)
     f = min(f_max, max(f_min, G / max(up, 1e-3)))
     return ThrustAttitude(f, 0.0, 0.0, R_W_PN, 0.0, False)
+
+
+def _drag_pass(l: np.ndarray, t: np.ndarray, f_min: float, f_max: float, max_tilt: float,  # noqa: E741
+               y_ref: np.ndarray | None) -> ThrustAttitude:
+    """straight_pass with a thrust vector ``t`` (world): envelope, then the attitude nearest the LOS."""
+    tz = max(float(t[2]), _EPS)  # the thrust always carries the weight: never pointed down
+    th = math.hypot(float(t[0]), float(t[1]))
+    k = min(1.0, tz * math.tan(max_tilt) / th) if th > _EPS else 1.0
+    t = np.array([t[0] * k, t[1] * k, tz])
+    n = float(np.linalg.norm(t))
+    f = min(f_max, max(f_min, n))
+    z = t / n
+    x = l - float(l @ z) * z
+    nx = float(np.linalg.norm(x))
+    if nx < 1e-6:  # LOS along the thrust axis (not a pass geometry): any body x normal to z
+        x = pn_frame(z, y_ref)[:, 1]
+        nx = float(np.linalg.norm(x))
+    x = x / nx
+    R = np.column_stack((x, np.cross(z, x), z))
+    return ThrustAttitude(f, 0.0, 0.0, R, 0.0, False)
+
+
+def ring_view_gamma(gamma_bar: float, half_fov: float, ring_angle: float, margin: float,
+                    gamma_min: float) -> float:
+    """The FOV bound that keeps the whole ring in the image, not only its centre (rad in, rad out).
+
+    The paper's bound keeps the LOS (the gate centre) within ``gamma_bar`` of the optical axis. A detector
+    boxes the ring, and a ring cut by the image border gives a box whose centre is pulled towards the image
+    centre (a vertical and, when the vehicle banks, a lateral LOS error of tens of pixels in the last metres).
+    The LOS sits ``phi`` from the optical axis and the rim up to ``ring_angle`` (its angular radius) beyond it:
+    the rim stays inside a view of half angle ``half_fov`` while ``phi <= half_fov - ring_angle - margin``.
+    Never above ``gamma_bar``; never below ``gamma_min`` (a ring larger than the view is cut whatever we do:
+    then some thrust along the LOS stays allowed)."""
+    g = half_fov - max(ring_angle, 0.0) - margin
+    return min(gamma_bar, max(gamma_min, g))

@@ -389,6 +389,10 @@ class PX4Sitl:
             self.client("commander", "mode", "auto:loiter", check=False)
         self.wait_preflight(max(10.0, deadline - time.monotonic()))
 
+    def console_tail(self, lines: int = 8) -> str:
+        """The last lines PX4 printed, joined by " | " (for error messages)."""
+        return " | ".join(self._console_text().strip().splitlines()[-lines:])
+
     # ------------------------------------------------------------------------------ helpers
     def _console_text(self) -> str:
         try:

@@ -146,6 +146,10 @@ class _Steering:
         self.truth: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # p, v, gate, gate v
         self.imu: tuple[np.ndarray | None, float] | None = None  # (accelerometer FRD at capture, now), set per frame
 
+    @property
+    def drag_enu(self) -> np.ndarray | None:
+        return getattr(self.ctrl, "drag_enu", None)
+
     def reset(self) -> None:
         if self.kind == "baseline":
             from companion.baseline import BaselinePN

@@ -88,9 +88,18 @@ def test_start_while_airborne_is_refused(px4: PX4Sitl, log_dir: Path) -> None:
     px4.param_set("MIS_TAKEOFF_ALT", 4.0)
     px4.client("commander", "arm")
     px4.client("commander", "takeoff")
-    deadline = time.monotonic() + 40.0
-    while not (px4.status().nav_mode == "Hold" and _height(px4) > 3.0):
-        assert time.monotonic() < deadline, f"PX4's own take-off did not finish: {px4.status()}"
+    # Airborne and in Hold by PX4's own doing. PX4's Takeoff ends by itself on its *estimated* altitude (the
+    # EKF's height is off by 1-3 m) and once (CI, loaded machine) was still in Takeoff after 40 s: past 3 m of
+    # true height the test commands Hold itself rather than depend on when Takeoff ends.
+    deadline = time.monotonic() + 90.0
+    while True:
+        st, h = px4.status(), _height(px4)
+        if st.nav_mode == "Hold" and h > 3.0:
+            break
+        if st.nav_mode == "Takeoff" and h > 3.0:
+            px4.client("commander", "mode", "auto:loiter", check=False)
+        assert time.monotonic() < deadline, (f"PX4 not airborne in Hold 90 s after take-off: {st}, true height "
+                                             f"{h:.1f} m; console tail: {px4.console_tail()}")
         time.sleep(0.5)
     h0 = _height(px4)
     rc, out = finish(start_app(px4, log_dir), timeout=90)

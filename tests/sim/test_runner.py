@@ -78,8 +78,10 @@ def test_engagement_ends_are_the_runs_failure_reasons():
     assert h.outcome.reason == "target_lost" and not h.outcome.crossed and h.engagement["end"] == "ABORT TARGET_LOST"
 
 
-def test_engagement_protocol_passes_straight_and_confirms_it():
-    r = run_once(CFG, RunSpec("stationary", 1), record=True)
+@pytest.mark.parametrize("drag_compensation", [0.0, 1.0])
+def test_engagement_protocol_passes_straight_and_confirms_it(drag_compensation: float):
+    cfg = with_overrides(CFG, {"guidance": {"drag_compensation": drag_compensation}})
+    r = run_once(cfg, RunSpec("stationary", 1), record=True)
     assert r.outcome.crossed and r.outcome.success(1.0)
     tr = r.trajectory
     modes = [m for m in dict.fromkeys(tr.mode)]
@@ -88,7 +90,14 @@ def test_engagement_protocol_passes_straight_and_confirms_it():
     # In PASS the command is constant (no held bank that PN was flying): the straight pass.
     i = [k for k, m in enumerate(tr.mode) if m == "PASS"]
     assert len({(tr.roll_sp[k], tr.pitch_sp[k], tr.thrust[k]) for k in i}) == 1
-    assert abs(tr.roll_sp[i[0]]) < 1e-6 or abs(abs(tr.roll_sp[i[0]]) - 180.0) < 1e-6
+    if drag_compensation == 0.0:  # no drag estimate: level pass, wings level about the LOS
+        assert abs(tr.roll_sp[i[0]]) < 1e-6 or abs(abs(tr.roll_sp[i[0]]) - 180.0) < 1e-6
+    else:
+        # With the accelerometer's drag the pass cancels it and keeps the velocity: towards a stationary gate the
+        # drag is along the flight, so the bank is a fraction of a degree (not PN's), and the speed holds.
+        assert abs(tr.roll_sp[i[0]]) < 1.0
+        v0, v1 = np.linalg.norm(tr.v[i[0]]), np.linalg.norm(tr.v[i[-1]])
+        assert abs(v1 - v0) < 0.05 * v0
 
 
 def test_latency_delays_the_first_setpoint_by_the_delay():
