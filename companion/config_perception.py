@@ -44,6 +44,10 @@ class PerceptionConfig(Section):
     min_iou: Number = Field(0.05, ge=0.0, le=1.0, description="association: IoU with the prediction, or ...")
     coast_time: Seconds = Field(0.3, ge=0.0, le=10.0, description="s; Kalman prediction kept through misses")
     confirm_frames: int = Field(2, ge=1, le=30, description="consecutive detections that (re)acquire a target")
+    acquire_confidence: Number = Field(
+        0.5, ge=0.0, le=1.0,
+        description="a detection at least this confident acquires on its own frame (1 = always confirm_frames)",
+    )
     smoothing: Number = Field(
         0.3, ge=0.0, le=1.0, description="box smoothing 0..1 (0 = raw measurement, 1 = heavy); sets Kalman noise"
     )

@@ -175,7 +175,7 @@ def draw_hard_negative(img: np.ndarray, rng: np.random.Generator) -> None:
     """One frame-like non-gate object drawn into img (in place)."""
     h, w = img.shape[:2]
     # windows / glass cabinets most often: the shipped detector's most confident false boxes on real frames
-    kind = int(rng.choice(10, p=[0.2, 0.2, 0.1, 0.1, 0.07, 0.08, 0.08, 0.07, 0.05, 0.05]))
+    kind = int(rng.choice(12, p=[0.17, 0.17, 0.09, 0.09, 0.06, 0.07, 0.07, 0.06, 0.05, 0.05, 0.06, 0.06]))
     pts = _rect_pts(rng, w, h)
     side = float(np.ptp(pts[:, 0]))
     if kind in (0, 1):  # window / glass cabinet: frame + tinted glass + mullions
@@ -191,6 +191,7 @@ def draw_hard_negative(img: np.ndarray, rng: np.random.Generator) -> None:
                 a0 = pts[0] + (pts[3] - pts[0]) * t
                 a1 = pts[1] + (pts[2] - pts[1]) * t
                 cv2.line(img, tuple(int(v) for v in a0), tuple(int(v) for v in a1), col, 2, cv2.LINE_AA)
+            _shelf_content(img, rng, pts)
     elif kind == 2:  # door: tall frame reaching the floor
         pts = _rect_pts(rng, w, h, 30)
         pts[2:, 1] = np.maximum(pts[2:, 1], h * rng.uniform(0.8, 1.1))
@@ -233,10 +234,53 @@ def draw_hard_negative(img: np.ndarray, rng: np.random.Generator) -> None:
         p = pts.copy()
         p[:, 1] = p[:, 1].mean() + (p[:, 1] - p[:, 1].mean()) * rng.uniform(0.15, 0.4)  # flat: lies on the floor
         _poly(img, p, col, int(rng.integers(2, 6)) if rng.random() < 0.5 else -1)
+    elif kind == 10:  # a light board / wall panel on its own (it also stands behind gates: not a gate cue)
+        _board_behind(img, rng, pts)
+    elif kind == 11:  # over-exposed lamp, ceiling light streak or white object: a bright blob is not a gate
+        glow = np.zeros_like(img)
+        c = pts.mean(0)
+        ax = (max(int(side * rng.uniform(0.1, 0.5)), 3), max(int(side * rng.uniform(0.04, 0.25)), 2))
+        cv2.ellipse(glow, (int(c[0]), int(c[1])), ax, float(rng.uniform(0, 180)), 0.0,
+                    360.0 if rng.random() < 0.6 else float(rng.uniform(60, 180)), (255, 255, 255),
+                    -1 if rng.random() < 0.6 else max(ax[1] // 2, 2), cv2.LINE_AA)
+        glow = cv2.GaussianBlur(glow, (0, 0), float(rng.uniform(0.5, 3.0)))
+        img[:] = np.maximum(img, glow)
     else:  # lettering / printed text alone
         for _ in range(int(rng.integers(1, 4))):
             _text(img, rng, rng.uniform(0, w), rng.uniform(0, h), rng.uniform(0.4, 2.5),
                   tuple(float(x) for x in rng.uniform(0, 255, 3)))
+
+
+def _shelf_content(img: np.ndarray, rng: np.random.Generator, pts: np.ndarray) -> None:
+    """Objects behind the glass of a display cabinet: small blobs of any colour (bright, busy)."""
+    lo, hi = pts.min(0), pts.max(0)
+    size = max(float(min(hi - lo)), 4.0)
+    for _ in range(int(rng.integers(2, 12))):
+        c = lo + rng.random(2) * (hi - lo)
+        r = rng.uniform(0.03, 0.15) * size
+        col = tuple(float(x) for x in rng.uniform(0, 255, 3))
+        if rng.random() < 0.5:
+            cv2.rectangle(img, (int(c[0] - r), int(c[1] - r)), (int(c[0] + r), int(c[1] + r * rng.uniform(0.5, 2))),
+                          col, -1)
+        else:
+            cv2.circle(img, (int(c[0]), int(c[1])), max(int(r), 1), col, -1, cv2.LINE_AA)
+
+
+def _board_behind(img: np.ndarray, rng: np.random.Generator, outer: np.ndarray) -> None:
+    """A light board or wall panel behind a thin gate: the gate, not the board, is the box."""
+    if not np.isfinite(outer).all():
+        return
+    lo, hi = outer.min(0), outer.max(0)
+    c, half = (lo + hi) / 2, (hi - lo) / 2
+    if half.max() > 4 * max(img.shape[:2]):
+        return
+    half = half * rng.uniform(0.9, 1.7, 2)
+    c = c + rng.normal(0, 0.3, 2) * half
+    pts = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float) * half
+    pts += rng.normal(0, 0.08, (4, 2)) * half  # a plane at another angle than the gate's
+    g = rng.uniform(140, 240)
+    col = (g * rng.uniform(0.85, 1.0), g * rng.uniform(0.9, 1.0), g * rng.uniform(0.85, 1.0))
+    _poly(img, pts + c, col)
 
 
 def _random_gate(rng: np.random.Generator, cam: PinholeCamera, colour_style: Style) -> tuple[Gate, np.ndarray, str]:
@@ -250,7 +294,8 @@ def _random_gate(rng: np.random.Generator, cam: PinholeCamera, colour_style: Sty
     ray = np.linalg.solve(np.asarray(cam.K, float), np.array([u, v, 1.0]))
     ray /= np.linalg.norm(ray)
     R_wc = look_at(np.zeros(3), np.array([1.0, 0.0, 0.0]))
-    roll = rng.normal(0, math.radians(10))
+    # the camera banks: real drone frames show the gate rolled by up to ~45 deg (a diamond)
+    roll = rng.normal(0, math.radians(10)) if rng.random() < 0.5 else rng.uniform(-0.8, 0.8)
     cr, sr = math.cos(roll), math.sin(roll)
     R_wc = R_wc @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1.0]])
     centre = R_wc @ (ray * dist)
@@ -294,6 +339,8 @@ def _draw_real_gate(img: np.ndarray, mask: np.ndarray, rng: np.random.Generator,
         if rng.random() < 0.5 and np.isfinite(c).all() and abs(c[0]) < 4 * cam.width:
             _text(img, rng, c[0], c[1], float(rng.uniform(0.3, 1.2)), dark)
     else:
+        if kind == "tube" and rng.random() < 0.3:
+            _board_behind(img, rng, np.concatenate(polys))
         _draw_gate(img, polys, idx, gate, rng, shaded=True)
     _fill(mask, polys, [255] * len(polys), aa=False)
     if kind == "tube" and rng.random() < 0.7:  # a pole (or two feet) from the bottom edge to the floor
@@ -364,6 +411,8 @@ def _camera_effects(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     # low light / colour cast / vignetting
     gain = rng.uniform(*REAL_STYLE.gain)
     cast = rng.uniform(0.8, 1.2, 3).astype(np.float32)
+    if rng.random() < 0.25:  # fluorescent / cheap-sensor cyan-green cast (the basement frames): red suppressed
+        cast = np.array([rng.uniform(1.0, 1.4), rng.uniform(1.0, 1.35), rng.uniform(0.55, 0.85)], np.float32)
     f *= gain * cast[None, None, :]
     if rng.random() < 0.4:
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)

@@ -82,13 +82,14 @@ def test_eval_real_detector_on_rendered_frames_and_a_sequence(tmp_path: Path) ->
         _write(seq, f"f{k:02d}", img, [box.xyxy])
     _write(seq, "f99_free", np.full((480, 640, 3), 150, np.uint8), [])  # the gate has left the view
     rep = tmp_path / "rep"
-    assert cli_main(["perception", "eval", str(ds), "--out", str(rep), "--fps", "30"]) == 0
+    assert cli_main(["perception", "eval", str(ds), "--out", str(rep), "--fps", "30",
+                     "--set", "perception.acquire_confidence=1.0"]) == 0
     r = json.loads((rep / "report.json").read_text())
     f, t = r["frames"], r["tracking"]
     assert f["recall"] == 1.0 and f["precision"] == 1.0 and f["false_boxes_per_gate_free_frame"] == 0.0
     assert f["median_centre_error_px"] < 5.0
     s = t["per_sequence"]["approach"]
-    # confirm_frames = 2: the first frame has no box, every later one is on the gate
+    # confirm_frames = 2 (single-frame acquisition off): the first frame has no box, every later one is on the gate
     assert s["gate_visible_frames"] == 6 and s["on_gate"] == pytest.approx(5 / 6, abs=1e-3)
     assert s["on_wrong_target"] == 0.0 and s["switches_to_wrong"] == 0
     assert t["boxes_on_gate_free_frames"] <= 1  # at most a coasted box right after the gate left

@@ -30,3 +30,18 @@ def test_gate_free_scenes_and_negatives() -> None:
         draw_hard_negative(canvas, rng)
     assert (canvas != 128).any()
     assert all(p.ndim == 3 and p.shape[2] == 3 for p in photo_backgrounds())
+
+
+def test_board_behind_a_gate_stays_out_of_its_box() -> None:
+    from perception.realworld import _board_behind
+
+    rng = np.random.default_rng(3)
+    canvas = np.zeros((240, 320, 3), np.uint8)
+    outer = np.array([[140.0, 100.0], [180.0, 100.0], [180.0, 140.0], [140.0, 140.0]])
+    _board_behind(canvas, rng, outer)
+    _, xs = np.nonzero(canvas.max(axis=2) > 100)  # a light board was drawn around the gate's place ...
+    assert len(xs) > 40 * 40 * 0.5 and xs.min() < 180 and xs.max() > 140
+    before = canvas.copy()
+    _board_behind(canvas, rng, np.full((4, 2), np.inf))  # ... and nothing for a gate projected to infinity
+    assert (canvas == before).all()
+

@@ -103,7 +103,7 @@ def test_acquire_needs_consistent_detections_and_rejects_jumps() -> None:
         [B(100, 60)],  # only the far distractor: a jump, rejected -> coast
         [B(510, 400)],
     ]
-    p = _pipe(script, confirm_frames=2, coast_time=0.3)
+    p = _pipe(script, confirm_frames=2, coast_time=0.3, acquire_confidence=1.0)  # the confirm rule alone
     outs = [p.process(FRAME, k / 30) for k in range(len(script))]
     assert outs[0] is None and outs[1] is None
     assert outs[2] is not None and outs[2].cx == pytest.approx(502, abs=1e-6)
@@ -117,7 +117,7 @@ def test_coast_then_lose_then_reacquire() -> None:
     track = [[B(300 + 3 * k, 200)] for k in range(10)]
     gap = [[] for _ in range(12)]  # 0.4 s of nothing: longer than coast_time
     new = [[B(100, 300)] for _ in range(4)]
-    p = _pipe(track + gap + new, confirm_frames=2, coast_time=0.2)
+    p = _pipe(track + gap + new, confirm_frames=2, coast_time=0.2, acquire_confidence=1.0)  # confirm rule alone
     outs = [p.process(FRAME, k / 30) for k in range(len(track + gap + new))]
     coasted = [o for o in outs[10:22] if o is not None]
     # coasting continues the motion at ~90 px/s for up to 0.2 s (6 frames), then the target is lost
@@ -126,6 +126,34 @@ def test_coast_then_lose_then_reacquire() -> None:
     assert all(o is None for o in outs[10 + len(coasted):22])
     assert outs[22] is None and outs[23] is not None and outs[23].cx == pytest.approx(100, abs=1e-6)
     assert p.stats.losses == 1 and p.stats.acquisitions == 2
+
+
+def test_a_confident_detection_acquires_on_its_own_frame() -> None:
+    script = [
+        [B(100, 100, c=0.45)],  # weak: waits for a second agreeing detection ...
+        [B(102, 100, c=0.45)],  # ... acquired here
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],  # lost (coast 0.3 s)
+        [B(400, 300, c=0.7)],  # confident: acquired on its first frame
+        [B(402, 300, c=0.7)],
+    ]
+    p = _pipe(script, confirm_frames=2, coast_time=0.3, acquire_confidence=0.5)
+    outs = [p.process(FRAME, k / 30) for k in range(len(script))]
+    assert outs[0] is None and outs[1] is not None and outs[1].cx == pytest.approx(102, abs=1e-6)
+    assert outs[11] is None
+    assert outs[12] is not None and outs[12].cx == pytest.approx(400, abs=1e-6)
+    assert p.stats.acquisitions == 2 and p.stats.losses == 1
+    # the same confident detection with the rule off (1.0) waits for confirm_frames
+    p = _pipe(script[12:], confirm_frames=2, acquire_confidence=1.0)
+    assert p.process(FRAME, 0.0) is None and p.process(FRAME, 1 / 30) is not None
 
 
 def test_box_smoothing_reduces_jitter() -> None:
