@@ -102,13 +102,18 @@ class PNController:
     @classmethod
     def from_config(cls, cfg: Config) -> PNController:
         camera = CameraModel.from_config(cfg.camera)
-        # The solver bounds the angle between the LOS and body x; a camera tilted off body x by
+        # A camera pitched up (about body y only) is part of the exact FOV bound (GuidanceParams.uptilt). Any
+        # other mount: the solver bounds the angle between the LOS and body x, and a camera tilted off body x by
         # delta keeps the LOS within gamma_bar of the optical axis only if we ask for gamma_bar - delta.
-        misalign = math.acos(max(-1.0, min(1.0, float(camera.optical_axis_body[0]))))
+        from companion.config import camera_uptilt  # runtime import: config is a type-only import here
+
+        uptilt = camera_uptilt(cfg)
+        misalign = 0.0 if uptilt is not None else math.acos(max(-1.0, min(1.0, float(camera.optical_axis_body[0]))))
         gp = GuidanceParams(
             k_pn=cfg.guidance.k_pn,
             v_rel_bar=cfg.guidance.v_rel_bar,
             gamma_bar=math.radians(cfg.guidance.gamma_bar) - misalign,
+            uptilt=math.radians(uptilt or 0.0),
             f_max=cfg.airframe.f_max,
             f_min=cfg.airframe.f_min,
             fov=cfg.guidance.fov,
