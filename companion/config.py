@@ -157,6 +157,15 @@ class GuidanceConfig(Section):
         1.0, ge=0.0, le=1.5, description="fraction of the drag normal to the LOS (from the accelerometer, when the "
         "caller gives it) cancelled in the PN demand; 0 = the paper (drag assumed along the LOS)"
     )
+    delay_compensation: bool = Field(
+        False, description="bring a late frame's LOS rate forward by the velocity our own acceleration added since "
+        "its capture (a Smith predictor; needs the caller's time now and gate_radius > 0; no effect on a frame with "
+        "no age). Off: it lifts the x500's latency results but lowers the SIH profile's (docs/guidance.md)"
+    )
+    delay_compensation_lag: Seconds = Field(
+        0.7, gt=0.0, le=5.0, description="time constant of the modelled response of our acceleration to its command, "
+        "s (latency suite, x500 and racer, 360 runs: 0.7 s best; 0.2-0.4 s over-compensate)"
+    )
     keep_ring_in_view: bool = Field(
         False, description="shrink the FOV bound as the ring grows so its rim stays in the image (a detector's box "
         "of a ring cut by the border pulls the LOS towards the image centre); off by default: it costs forward "
@@ -198,19 +207,41 @@ class Config(Section):
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Config:
-        # The controller keeps the LOS within gamma_bar of body x; a tilted camera eats into that margin.
+        uptilt = camera_uptilt(self)
+        if uptilt is not None:  # the exact FOV bound measures from the pitched optical axis (companion/guidance.py)
+            limit = min(self.guidance.gamma_bar + self.airframe.max_tilt, 89.0)
+            if abs(uptilt) >= limit:
+                raise ValueError(
+                    f"camera.mount.pitch {uptilt:g} deg: |pitch| must stay below min(89, guidance.gamma_bar + "
+                    f"airframe.max_tilt) = {limit:g} deg, or no attitude within the tilt envelope sees a gate ahead"
+                )
+            return self._other_checks()
+        # Otherwise the controller keeps the LOS within gamma_bar of body x; a tilted camera eats into that margin.
         misalign = math.degrees(math.acos(np.clip(self.camera.R_body_cam[:, 2] @ np.array([1.0, 0, 0]), -1, 1)))
         if misalign >= self.guidance.gamma_bar:
             raise ValueError(
                 f"camera.mount tilts the optical axis {misalign:.1f} deg off body x, "
                 f">= guidance.gamma_bar {self.guidance.gamma_bar} deg: the FOV bound cannot be kept"
             )
+        return self._other_checks()
+
+    def _other_checks(self) -> Config:
         if self.airframe.f_min >= G:
             raise ValueError("airframe.thrust_min is at or above hover thrust")
         exposed = self.link.exposure_problem()  # here, not in LinkConfig: url and allow_all_interfaces together
         if exposed is not None:
             raise ValueError(exposed)
         return self
+
+
+def camera_uptilt(cfg: Config) -> float | None:
+    """The camera's uptilt (camera.mount.pitch, deg) when the solver handles it exactly, else None.
+
+    Exactly handled: a mount pitched about body y only (roll = yaw = 0) with ``guidance.fov: exact``. Any other
+    mount (or the paper's FOV bound) is taken conservatively: gamma_bar minus the optical axis's angle off body x.
+    """
+    m = cfg.camera.mount
+    return m.pitch if cfg.guidance.fov == "exact" and m.roll == 0.0 and m.yaw == 0.0 else None
 
 
 def default_config_dir() -> Path:

@@ -68,6 +68,11 @@ class ControllerParams:
     view_margin: float | None = None
     gamma_min: float = math.radians(3.0)
     gate_radius: float = 0.0  # m, for the ring's angular size from the range estimate (0: from the box only)
+    # Delay compensation (a Smith predictor on our own motion): the LOS rate of a late frame is brought forward by
+    # the velocity our own commanded acceleration added since the frame was captured (the image shows it only
+    # later). own_lag: time constant of the first-order model of how the commanded acceleration is reached.
+    delay_compensation: bool = False
+    own_lag: float = 0.7
 
 
 def closing_params(cfg: Config) -> ClosingParams | None:
@@ -97,13 +102,18 @@ class PNController:
     @classmethod
     def from_config(cls, cfg: Config) -> PNController:
         camera = CameraModel.from_config(cfg.camera)
-        # The solver bounds the angle between the LOS and body x; a camera tilted off body x by
+        # A camera pitched up (about body y only) is part of the exact FOV bound (GuidanceParams.uptilt). Any
+        # other mount: the solver bounds the angle between the LOS and body x, and a camera tilted off body x by
         # delta keeps the LOS within gamma_bar of the optical axis only if we ask for gamma_bar - delta.
-        misalign = math.acos(max(-1.0, min(1.0, float(camera.optical_axis_body[0]))))
+        from companion.config import camera_uptilt  # runtime import: config is a type-only import here
+
+        uptilt = camera_uptilt(cfg)
+        misalign = 0.0 if uptilt is not None else math.acos(max(-1.0, min(1.0, float(camera.optical_axis_body[0]))))
         gp = GuidanceParams(
             k_pn=cfg.guidance.k_pn,
             v_rel_bar=cfg.guidance.v_rel_bar,
             gamma_bar=math.radians(cfg.guidance.gamma_bar) - misalign,
+            uptilt=math.radians(uptilt or 0.0),
             f_max=cfg.airframe.f_max,
             f_min=cfg.airframe.f_min,
             fov=cfg.guidance.fov,
@@ -122,6 +132,8 @@ class PNController:
             view_margin=math.radians(cfg.guidance.view_margin) if cfg.guidance.keep_ring_in_view else None,
             gamma_min=math.radians(cfg.guidance.gamma_min),
             gate_radius=cfg.guidance.gate_radius,
+            delay_compensation=cfg.guidance.delay_compensation,
+            own_lag=cfg.guidance.delay_compensation_lag,
         )
         return cls(cp, camera)
 
@@ -143,6 +155,8 @@ class PNController:
         self._w: np.ndarray | None = None  # filtered LOS rate vector lambda_dot * n (ENU)
         self._lam = 0.0  # last LOS rate, rad/s
         self._latency = 0.0  # age of the last frame when it reached us, s
+        self._t_now: float | None = None  # the caller's time now (frame arrival), when given
+        self._own: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t issued, commanded accel, modelled accel)
         self._drag: np.ndarray | None = None  # filtered aerodynamic acceleration (ENU), from the accelerometer
         self._t_drag: float | None = None
         if self._closing is not None:
@@ -166,6 +180,7 @@ class PNController:
         R_ned_frd = R_from_quat_wxyz(q_wxyz_ned_frd)
         if t_now is not None and math.isfinite(t_now) and math.isfinite(t):
             self._latency = max(0.0, t_now - t)
+            self._t_now = t_now
         rejected = self._check(t, box)
         t_ok = math.isfinite(t) and (self._t_last is None or t > self._t_last)
         self._t_last = t if math.isfinite(t) else self._t_last
@@ -248,6 +263,54 @@ class PNController:
             return None
         return f"LOS jump ({math.degrees(angle):.1f} deg in {dt * 1e3:.0f} ms)"
 
+    def _note_command(self, a: np.ndarray) -> None:
+        """Remember the acceleration commanded now (world ENU, normal to the LOS) for the delay compensation."""
+        t = self._t_now if self._t_now is not None else self._t_last
+        if t is None:
+            return
+        prev = self._own[-1] if self._own else None
+        tau = self.p.own_lag
+        if prev is None:
+            eff = np.zeros(3)
+        else:
+            t0, a0, e0 = prev
+            eff = a0 + (e0 - a0) * math.exp(-(t - t0) / tau) if tau > 0.0 else a0.copy()
+        self._own.append((t, np.asarray(a, dtype=float).copy(), eff))
+        horizon = t - 2.0  # older commands never fall in a frame's window
+        while len(self._own) > 2 and self._own[1][0] < horizon:
+            self._own.pop(0)
+
+    def _own_dv(self, t0: float, t1: float) -> np.ndarray:
+        """The velocity our own (modelled) acceleration added between t0 and t1: commands held until the next one,
+        each reached with a first-order lag."""
+        dv = np.zeros(3)
+        tau = self.p.own_lag
+        hist = self._own
+        for i, (ti, ai, ei) in enumerate(hist):
+            tn = hist[i + 1][0] if i + 1 < len(hist) else t1
+            s0, s1 = max(t0, ti), min(t1, tn)
+            if s1 <= s0:
+                continue
+            if tau > 0.0:
+                dv += ai * (s1 - s0) + (ei - ai) * tau * (math.exp(-(s0 - ti) / tau) - math.exp(-(s1 - ti) / tau))
+            else:
+                dv += ai * (s1 - s0)
+        return dv
+
+    def _predict_rate(self, t: float, l_f: np.ndarray, lam: float, n: np.ndarray) -> tuple[float, np.ndarray]:
+        """The LOS rate now, not at capture: ``dl/dt = v_rel_normal / d``, so our own velocity change since the
+        capture, ``dv``, moves it by ``-dv_normal / d`` (d from the closing-speed range). The gate's own
+        acceleration stays unknown."""
+        d = self._closing.range if self._closing is not None else None
+        t_now = self._t_now
+        if d is None or d <= 0.5 or t_now is None or not self._own:
+            return lam, n
+        dv = self._own_dv(t, t_now)
+        dv = dv - float(dv @ l_f) * l_f
+        w = lam * n - dv / d
+        lp = float(np.linalg.norm(w))
+        return lp, (w / lp if lp > 0.0 else np.zeros(3))
+
     def _ring_angle(self, box: BoundingBox | None) -> float:
         """The ring's angular radius (rad): the larger of the range estimate's (``atan(r / d)``; it carries on
         through boxes cut by the border) and this box's (half its larger side; an under-estimate when cut)."""
@@ -275,6 +338,8 @@ class PNController:
         rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
         lambda_dot, n = self._smooth_rate(l_f, rate.lambda_dot * rate.n, dt)
         self._lam = lambda_dot
+        if self.p.delay_compensation:
+            lambda_dot, n = self._predict_rate(t, l_f, lambda_dot, n)
         gp = self.p.guidance
         v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
         a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, v_rel)
@@ -289,6 +354,13 @@ class PNController:
                 a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
         sol = guidance.solve(l_f, a_n, self._gamma(box), y_ref=self._body_y_enu(R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
+        if self.p.delay_compensation:
+            # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
+            # accelerometer measures acts on top (the compensation above only cancels it in the command).
+            a_net = sol.demand_scale * a_n
+            if self._drag is not None:
+                a_net = a_net + (self._drag - float(self._drag @ l_f) * l_f)
+            self._note_command(a_net)
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
         return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, None, v_rel)
 

@@ -53,10 +53,12 @@ the LOS, the optical axis as close to the LOS as ``max_tilt`` allows, thrust for
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import brentq
 
 from companion.frames import euler_ned_deg_from_R, quat_wxyz_from_R
 
@@ -65,6 +67,7 @@ DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 
 g_W = np.array([0.0, 0.0, -G])
 
 _EPS = 1e-12
+_UPTILT_EPS = 1e-12  # rad: below, the camera counts as along body x (the closed form; subnormal sines underflow)
 _ENU_TO_NED_ROWS = [1, 0, 2]
 _NED_FRD_SIGNS = np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])  # row signs of P_NED_ENU x column signs of F_FRD_FLU
 
@@ -80,10 +83,15 @@ class GuidanceParams:
     f_min: float
     fov: str = "exact"  # "exact": bound the real LOS-to-optical-axis angle; "paper": cos(phi) cos(theta)
     max_tilt: float = math.radians(DEFAULT_MAX_TILT_DEG)  # thrust axis from vertical, rad
+    uptilt: float = 0.0  # camera pitched up about body y, rad: optical axis cos(mu) x_B + sin(mu) z_B (exact FOV only)
 
     def __post_init__(self) -> None:
         if self.fov not in ("exact", "paper"):
             raise ValueError(f"fov must be 'exact' or 'paper', got {self.fov!r}")
+        if not (-math.pi / 2 < self.uptilt < math.pi / 2):
+            raise ValueError(f"uptilt must be in (-pi/2, pi/2) rad, got {self.uptilt}")
+        if self.uptilt != 0.0 and self.fov != "exact":
+            raise ValueError("uptilt needs fov='exact' (the paper's bound takes a tilted camera as smaller gamma_bar)")
         if not (0.0 < self.gamma_bar < math.pi / 2):
             raise ValueError(f"gamma_bar must be in (0, pi/2) rad, got {self.gamma_bar}")
         if not (0.0 < self.max_tilt < math.pi / 2):
@@ -196,11 +204,12 @@ def _tilt_margin(t_x: float, b: float, K: float, u_x: float, c: float) -> float:
 
 
 def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams
-              ) -> tuple[float, float, float, float, float, float] | None:
-    """(H, xm, b, K, u_x, c) for fixed normal thrust components, or None when (a)-(c) admit no ``t_x``.
+              ) -> tuple[list[tuple[float, float]], float, float, float, float, float] | None:
+    """(pieces, xm, b, K, u_x, c) for fixed normal thrust components, or None when (a)-(c) admit no ``t_x``.
 
-    (a)-(c) of the module docstring give ``|t_x| <= H``; the tilt margin ``h(t_x) = u . t - cos(max_tilt) |t|``
-    is concave in ``t_x``, and ``xm`` is its maximiser clamped into ``[-H, H]``: (d) is satisfiable iff h(xm) >= 0.
+    (a)-(c) of the module docstring allow ``t_x`` in the union of the intervals ``pieces`` (ascending; one,
+    ``[-H, H]``, without uptilt); the tilt margin ``h(t_x) = u . t - cos(max_tilt) |t|`` is concave in ``t_x``
+    with maximiser ``xm``: (d) is satisfiable in a piece iff h at ``xm`` clamped into it is >= 0.
     """
     if t_z < p.f_min * (1.0 - 1e-12):
         return None
@@ -208,21 +217,98 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
     r2 = p.f_max * p.f_max - K
     if r2 < -1e-12 * p.f_max * p.f_max:
         return None
-    tg = math.tan(p.gamma_bar)
-    if p.fov == "exact":
-        w = t_z * tg
-    else:
-        w2 = t_z * t_z * tg * tg - t_y * t_y
-        if w2 < -1e-12 * (1.0 + K):
+    r = math.sqrt(max(r2, 0.0))
+    if abs(p.uptilt) > _UPTILT_EPS:
+        pieces = [(max(-r, lo), min(r, hi)) for lo, hi in _uptilt_pieces(t_y, t_z, p.uptilt, p.gamma_bar)]
+        pieces = [(lo, hi) for lo, hi in pieces if lo <= hi]
+        if not pieces:
             return None
-        w = math.sqrt(max(w2, 0.0))
-    H = min(w, math.sqrt(max(r2, 0.0)))
+    else:
+        tg = math.tan(p.gamma_bar)
+        if p.fov == "exact":
+            w = t_z * tg
+        else:
+            w2 = t_z * t_z * tg * tg - t_y * t_y
+            if w2 < -1e-12 * (1.0 + K):
+                return None
+            w = math.sqrt(max(w2, 0.0))
+        H = min(w, r)
+        pieces = [(-H, H)]
     u_x, u_y, u_z = u
     c = math.cos(p.max_tilt)
     s2 = c * c - u_x * u_x
     # Maximiser of h: finite when the LOS direction lies outside the tilt cone, else at +-inf.
     xm = u_x * math.sqrt(K / s2) if s2 > 1e-15 else (math.copysign(math.inf, u_x) if u_x != 0.0 else 0.0)
-    return H, max(-H, min(H, xm)), u_y * t_y + u_z * t_z, K, u_x, c
+    return pieces, xm, u_y * t_y + u_z * t_z, K, u_x, c
+
+
+def _uptilt_pieces(t_y: float, t_z: float, mu: float, gamma_bar: float) -> list[tuple[float, float]]:
+    """The ``t_x`` allowed by the exact FOV bound (c) with the camera pitched up by ``mu``: ascending intervals.
+
+    Optical axis ``o = cos(mu) x_B + sin(mu) z_B``; in the PN frame ``x_B = (cos phi, 0, -sin phi)`` and
+    ``z_B = t / |t|``, so with ``u = t_x / t_z`` and ``k = (t_y^2 + t_z^2) / t_z^2 >= 1``
+    ``F(u) = o . l - cos(gamma_bar) = cos(mu) / sqrt(1 + u^2) + sin(mu) u / sqrt(u^2 + k) - cos(gamma_bar) >= 0``.
+    For mu > 0 (mu < 0 mirrors u) F rises on u <= 0. F' = 0 where ``G(u) = u ((u^2 + k) / (1 + u^2))^1.5 =
+    tan(mu) k``; G is monotone between the roots of ``w^2 + (4 - 2k) w + k`` (w = u^2), which exist for k > 4
+    (roll beyond 60 deg): at most three critical points, one per monotone piece of G, each found by Brent's
+    method. F is monotone between them, so the set F >= 0 follows exactly, its ends moved to the feasible side.
+    """
+    cm, sm, cg = math.cos(mu), math.sin(abs(mu)), math.cos(gamma_bar)
+    k = 1.0 + (t_y / t_z) ** 2
+
+    def F(x: float) -> float:
+        return cm / math.sqrt(1.0 + x * x) + sm * x / math.sqrt(x * x + k) - cg
+
+    def dF(x: float) -> float:
+        return sm * k / (x * x + k) ** 1.5 - cm * x / (1.0 + x * x) ** 1.5
+
+    def root(f, out: float, ins: float) -> float:  # f(out) < 0 <= f(ins): the root, moved to the feasible side
+        x = brentq(f, min(out, ins), max(out, ins), xtol=1e-15, rtol=8.9e-16, maxiter=200)
+        step = 1e-16 * (1.0 + abs(x))
+        while f(x) < 0.0 and (ins - x) * (ins - out) > 0.0:
+            x, step = x + math.copysign(step, ins - out), 2.0 * step
+        return x if f(x) >= 0.0 and (ins - x) * (ins - out) >= 0.0 else ins
+
+    # Critical points of F on u > 0. dF > 0 at 0, dF < 0 beyond tan(mu) k (there (u^2 + k) / (1 + u^2) >= 1).
+    edges = [0.0]
+    if k > 4.0:
+        d = math.sqrt((k - 1.0) * (k - 4.0))
+        edges += [math.sqrt(k - 2.0 - d), math.sqrt(k - 2.0 + d)]
+    edges.append(max(math.tan(abs(mu)) * k * (1.0 + 1e-9) + 1e-12, 2.0 * edges[-1]))
+    crit = []
+    for lo, hi in itertools.pairwise(edges):
+        dlo, dhi = dF(lo), dF(hi)
+        if dlo == 0.0:
+            crit.append(lo)
+        elif dlo * dhi < 0.0:
+            crit.append(brentq(dF, lo, hi, xtol=1e-15, rtol=8.9e-16, maxiter=200))
+    # Nodes between which F is monotone: below a, F < cos(mu) / sqrt(1 + u^2) - cos(gamma_bar) <= 0; beyond b,
+    # F < cos(mu) / sqrt(1 + u^2) + sin(mu) - cos(gamma_bar) <= 0, unless sin(mu) >= cos(gamma_bar) (then F > 0
+    # on the whole tail: F falls towards sin(mu) from above).
+    a = -math.sqrt(max((cm / cg) ** 2 - 1.0, 0.0)) - 1e-9
+    nodes = [a, *crit]
+    if sm < cg:
+        nodes.append(max(math.sqrt(max((cm / (cg - sm)) ** 2 - 1.0, 0.0)) * (1.0 + 1e-9) + 1e-9, 2.0 * nodes[-1]))
+    vals = [F(x) for x in nodes]
+    pieces: list[list[float]] = []
+    for i in range(len(nodes) - 1):
+        x0, x1, f0, f1 = nodes[i], nodes[i + 1], vals[i], vals[i + 1]
+        if f0 < 0.0 and f1 < 0.0:
+            continue
+        lo = x0 if f0 >= 0.0 else root(F, x0, x1)
+        hi = x1 if f1 >= 0.0 else root(F, x1, x0)
+        if pieces and pieces[-1][1] == lo:
+            pieces[-1][1] = hi
+        else:
+            pieces.append([lo, hi])
+    if sm >= cg and vals[-1] >= 0.0:
+        if pieces and pieces[-1][1] == nodes[-1]:
+            pieces[-1][1] = math.inf
+        else:
+            pieces.append([nodes[-1], math.inf])
+    if mu < 0.0:
+        return [(-hi * t_z, -lo * t_z) for lo, hi in reversed(pieces)]
+    return [(lo * t_z, hi * t_z) for lo, hi in pieces]
 
 
 def _tilt_room(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams) -> float:
@@ -230,8 +316,8 @@ def _tilt_room(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidanc
     e = _envelope(t_y, t_z, u, p)
     if e is None:
         return -math.inf
-    _, xm, b, K, u_x, c = e
-    return _tilt_margin(xm, b, K, u_x, c)
+    pieces, xm, b, K, u_x, c = e
+    return max(_tilt_margin(max(lo, min(hi, xm)), b, K, u_x, c) for lo, hi in pieces)
 
 
 def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams) -> float | None:
@@ -239,10 +325,19 @@ def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceP
     e = _envelope(t_y, t_z, u, p)
     if e is None:
         return None
-    H, xm, b, K, u_x, c = e
+    pieces, xm_free, b, K, u_x, c = e
+    for lo, hi in reversed(pieces):  # the highest piece with a feasible point holds the largest t_x
+        x = _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
+        if x is not None:
+            return x
+    return None
+
+
+def _best_tx_in(L: float, H: float, xm: float, b: float, K: float, u_x: float, c: float) -> float | None:
+    """Largest ``t_x`` in ``[L, H]`` within the tilt cone (d); ``xm`` is h's maximiser clamped into ``[L, H]``."""
     if _tilt_margin(H, b, K, u_x, c) >= 0.0:
         return H
-    tol = 1e-12 * (1.0 + math.sqrt(K) + H)
+    tol = 1e-12 * (1.0 + math.sqrt(K) + abs(H))
     if _tilt_margin(xm, b, K, u_x, c) < -tol:
         return None
     # h(xm) >= 0 > h(H): the largest feasible t_x is the root of h in [xm, H]. Roots of the squared form
@@ -302,6 +397,14 @@ def demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidancePara
     s = max(0.0, min(1.0, s))
     if feasible(s):
         return s
+    if abs(p.uptilt) > _UPTILT_EPS:  # the uptilted FOV bound (c) may bind too: bisect, keeping the feasible end
+        lo, hi = 0.0, s
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if feasible(mid) else (lo, mid)
+            if hi - lo <= 1e-13:
+                break
+        return lo
     # Only the tilt cone binds on [0, s]: the root of the concave tilt room r(s) (r(0) >= 0 > r(s)),
     # by regula falsi with the Illinois modification, keeping the feasible end.
     def room(x: float) -> float:
@@ -373,10 +476,11 @@ def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidancePara
 
     Wings level about the LOS (theta = 0) and the optical axis as close to the LOS as the tilt bound allows:
     the thrust axis ``(sin phi, 0, cos phi)`` makes the angle ``|phi - alpha|`` with up, ``alpha = atan2(u_x, u_z)``,
-    so ``phi = clip(0, alpha - max_tilt, alpha + max_tilt)``. Thrust holds altitude, within the thrust limits.
+    so ``phi = clip(uptilt, alpha - max_tilt, alpha + max_tilt)`` (the optical axis is ``|phi - uptilt|`` off the
+    LOS). Thrust holds altitude, within the thrust limits.
     """
     alpha = math.atan2(u[0], u[2])
-    phi = max(alpha - p.max_tilt, min(alpha + p.max_tilt, 0.0))
+    phi = max(alpha - p.max_tilt, min(alpha + p.max_tilt, p.uptilt))  # optical axis at phi - uptilt from the LOS
     up = u[0] * math.sin(phi) + u[2] * math.cos(phi)  # cos(tilt) > 0
     f = min(p.f_max, max(p.f_min, G / up if up > _EPS else p.f_min))
     return ThrustAttitude(f, phi, 0.0, R_W_PN @ _R_y_R_x(phi, 0.0), 0.0, True)

@@ -93,9 +93,17 @@ def test_later_files_win_key_by_key(tmp_path) -> None:
 
 
 def test_cross_check_camera_tilt_against_gamma_bar(tmp_path) -> None:
-    p = overlay(tmp_path, "camera:\n  mount:\n    pitch: 25 deg\n")
+    # A tilt the solver does not model exactly (the paper's FOV bound, or a mount with roll/yaw) is
+    # subtracted from gamma_bar: 25 deg off body x cannot be kept within 21.05 deg.
+    p = overlay(tmp_path, "camera:\n  mount:\n    pitch: 25 deg\nguidance:\n  fov: paper\n")
     with pytest.raises(ConfigError, match="gamma_bar"):
         load_config([p])
+    p = overlay(tmp_path, "camera:\n  mount:\n    pitch: 25 deg\n    roll: 2 deg\n", "b.yaml")
+    with pytest.raises(ConfigError, match="gamma_bar"):
+        load_config([p])
+    # A pure pitch with the exact bound is part of the solver (tests/test_guidance_uptilt.py).
+    p = overlay(tmp_path, "camera:\n  mount:\n    pitch: 25 deg\n", "c.yaml")
+    assert load_config([p]).camera.mount.pitch == 25.0
 
 
 def test_config_is_immutable() -> None:

@@ -219,3 +219,58 @@ def test_boxes_cut_on_both_sides_or_both_axes_are_left_alone():
     for b in (_xyxy(0.0, 100.0, W, 200.0), _xyxy(100.0, 0.0, 200.0, H), _xyxy(0.0, 0.0, 100.0, 120.0),
               _xyxy(2.0, 100.0, W - 2.0, 300.0)):
         assert complete_clipped_box(b, W, H) is b
+
+
+# -- delay compensation (Smith predictor on our own motion) ----------------------------------------------
+
+
+def _feed(ctrl: PNController, age: float, n: int = 40):
+    outs = []
+    for i in range(n):
+        t = i * DT
+        b = BoundingBox(W / 2 + 3 * i, H / 2 - i, 40.0 + i, 40.0 + i, 0.9, t)
+        outs.append(ctrl.step(t, b, LEVEL, None, t + age))
+    return outs
+
+
+def test_delay_compensation_changes_nothing_for_a_fresh_frame():
+    on = PNController.from_config(load_config([], ["guidance.delay_compensation=true"]))
+    off = PNController.from_config(load_config([], ["guidance.delay_compensation=false"]))
+    for a, b in zip(_feed(on, 0.0), _feed(off, 0.0), strict=True):
+        assert a.setpoint.R_ned_frd == pytest.approx(b.setpoint.R_ned_frd, abs=0.0)
+        assert a.setpoint.thrust == b.setpoint.thrust and a.lambda_dot == b.lambda_dot
+
+
+def test_delay_compensation_acts_on_late_frames_only_through_our_own_commands():
+    on = PNController.from_config(load_config([], ["guidance.delay_compensation=true"]))
+    off = PNController.from_config(load_config([], ["guidance.delay_compensation=false"]))
+    late_on, late_off = _feed(on, 0.2), _feed(off, 0.2)
+    assert late_on[0].lambda_dot == late_off[0].lambda_dot  # no command yet: nothing to bring forward
+    assert any(abs(a.lambda_dot - b.lambda_dot) > 1e-6 for a, b in zip(late_on, late_off, strict=True))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.05, 2.0), st.floats(0.0, 0.5), st.floats(0.01, 0.4), st.floats(-5.0, 5.0))
+def test_own_velocity_model_against_an_integral(tau: float, t0: float, width: float, a_y: float):
+    """The velocity our commanded accelerations add in [t0, t0 + width]: commands held until the next one, each
+    reached with a first-order lag ``tau`` -- checked against a fine numerical integration of the same model."""
+    cfg = load_config([], ["guidance.delay_compensation=true", f"guidance.delay_compensation_lag={tau} s"])
+    ctrl = PNController.from_config(cfg)
+    cmds = [(0.0, np.array([0.0, a_y, 0.0])), (0.1, np.array([1.0, -a_y, 0.5])), (0.25, np.array([0.0, 0.0, 2.0]))]
+    for t, a in cmds:
+        ctrl._t_now = t
+        ctrl._note_command(a)
+    t1 = t0 + width
+    dv = ctrl._own_dv(t0, t1)
+    # Independent: Euler integration of tau * da_eff/dt = a_cmd(t) - a_eff, a_eff(0) = 0.
+    h = 1e-4
+    eff = np.zeros(3)
+    acc = np.zeros(3)
+    t = 0.0
+    while t < t1:
+        cmd = [a for tc, a in cmds if tc <= t][-1]
+        if t >= t0:
+            acc += eff * h
+        eff = eff + (cmd - eff) * (h / tau)
+        t += h
+    assert dv == pytest.approx(acc, abs=2e-3 * (1 + np.abs(acc).max()))

@@ -382,14 +382,6 @@ async def _escaped(app: FlightApp, link: Any, err: Exception, stderr: Any) -> tu
 # ---------------------------------------------------------------------------- simulated PX4 process
 
 
-def _die_with_parent() -> None:
-    """In the child before exec: SIGTERM when the parent dies (Linux prctl PR_SET_PDEATHSIG)."""
-    import ctypes
-
-    with contextlib.suppress(Exception):
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
-
-
 class SimPX4Process:
     """The simulated PX4 in its own process (``python -m companion.sim.px4 --port 0``), for real-time runs."""
 
@@ -401,11 +393,13 @@ class SimPX4Process:
         for o in overrides or []:
             cmd += ["--set", o]
         cmd += extra or []
+        from companion.px4sitl.launcher import die_with_parent
+
         # Own session: a Ctrl-C in the terminal reaches the app only, which hands over to HOLD while the
         # simulated PX4 still runs; the parent-death signal still ends the sim if the app is killed.
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                                      bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                                     start_new_session=True, preexec_fn=_die_with_parent)
+                                     start_new_session=True, preexec_fn=die_with_parent)
         self.remote_port: int | None = None
         self.port = self._read_port(timeout)
 

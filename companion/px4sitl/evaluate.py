@@ -27,6 +27,7 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import signal
 import sys
 import time
 import traceback
@@ -211,12 +212,25 @@ class _Vehicle:
 
 
 def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out_dir: str, radii: list[float],
-            jobs: Any, results: Any, candidates: list[int]) -> None:
-    """One PX4 instance; runs jobs from the queue until it is empty."""
+            jobs: Any, results: Any, candidates: list[int], parent_pid: int) -> None:
+    """One PX4 instance; runs jobs from the queue until it is empty.
+
+    A worker never outlives the suite: killed (SIGTERM, SIGKILL), the parent takes its workers with it (the
+    kernel's parent-death signal), and SIGTERM here unwinds through ``finally``, which stops PX4. Without this a
+    killed ``companion eval`` left its workers flying (and restarting) PX4 instances with nobody listening.
+    """
     from companion.app.main import fly
     from companion.config import load_config
-    from companion.px4sitl.launcher import PX4Sitl, px4_params
+    from companion.px4sitl.launcher import PX4Sitl, die_with_parent, px4_params
     from companion.px4sitl.run import record_px4
+
+    def _terminated(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, _terminated)
+    die_with_parent()
+    if os.getppid() != parent_pid:  # the parent died before the parent-death signal was armed
+        return
 
     # mavsdk and PX4 talk on stdout: one log file per worker keeps the progress bar readable.
     log = open(Path(out_dir) / f"worker{wid}.log", "a", buffering=1)  # noqa: SIM115 (the worker's lifetime)
@@ -330,7 +344,7 @@ def run_px4_suite(args: argparse.Namespace, cfg: Any, out_dir: Path) -> dict[str
     n_workers = max(1, min(args.jobs, len(jobs)))
     cands = list(range(cfg.px4.instance_min, cfg.px4.instance_max + 1))
     procs = [ctx.Process(target=_worker, args=(w, str(sitl), list(args.config), list(args.overrides), str(out_dir),
-                                               radii, jq, rq, cands), daemon=False)
+                                               radii, jq, rq, cands, os.getpid()), daemon=False)
              for w in range(n_workers)]
     t0 = time.monotonic()
     for p in procs:

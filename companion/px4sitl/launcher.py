@@ -163,8 +163,8 @@ def claim_instance(candidates: Iterable[int]) -> tuple[int, IO[str]]:
                        f"or a PX4 already running as -i N)")
 
 
-def _die_with_parent() -> None:
-    """In the child before exec: SIGTERM when the parent dies (Linux prctl PR_SET_PDEATHSIG), own session."""
+def die_with_parent() -> None:
+    """SIGTERM to this process when its parent dies (Linux prctl PR_SET_PDEATHSIG); a no-op elsewhere."""
     import ctypes
 
     with contextlib.suppress(Exception):
@@ -267,7 +267,7 @@ class PX4Sitl:
         self._out = open(self.console, "wb")  # noqa: SIM115 (PX4's console, kept beside its logs)
         cmd = [str(self.bin / "px4"), "-d", "-w", str(self.work), "-i", str(self.instance), str(self.sitl / "etc")]
         self.proc = subprocess.Popen(cmd, cwd=self.work, env=env, stdin=subprocess.DEVNULL, stdout=self._out,
-                                     stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent)
+                                     stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=die_with_parent)
         self.t_start = time.monotonic()
         atexit.register(self.stop)
         self.log(f"PX4 SITL instance {self.instance} (pid {self.proc.pid}), working folder {self.work}")

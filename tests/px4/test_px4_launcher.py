@@ -90,3 +90,48 @@ def test_ctrl_c_of_companion_sim_stops_px4(sitl: Path, tmp_path: Path) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def _px4_under(folder: Path) -> list[tuple[int, int]]:
+    """(pid, parent pid) of the PX4 daemons whose working folder is under ``folder``."""
+    found = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            argv = (d / "cmdline").read_bytes().split(b"\0")
+            stat = (d / "stat").read_text()
+        except OSError:
+            continue
+        if len(argv) > 3 and argv[0].endswith(b"/px4") and str(folder).encode() in b" ".join(argv):
+            found.append((int(d.name), int(stat.split(")")[-1].split()[1])))
+    return found
+
+
+def test_a_killed_px4_eval_takes_its_workers_and_px4_with_it(sitl: Path, tmp_path: Path) -> None:
+    # Found by hand: SIGTERM to `companion eval --autopilot px4` left its worker processes alive, and they went on
+    # starting PX4 instances for minutes with nobody listening.
+    r = instance_range()
+    proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "eval", "table1", "--autopilot", "px4",
+                             "--px4-dir", str(sitl), "--runs", "1", "--jobs", "1", "--no-progress", "--no-plots",
+                             "--out", str(tmp_path / "out"), "--set", f"px4.work_dir={tmp_path}",
+                             "--set", f"px4.instance_min={r.start}", "--set", f"px4.instance_max={r.stop - 1}"],
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 90
+        px4: list[tuple[int, int]] = []
+        while not px4:
+            assert time.monotonic() < deadline and proc.poll() is None, "the eval never started PX4"
+            time.sleep(0.2)
+            px4 = _px4_under(tmp_path)
+        (pid, worker), = px4
+        assert worker != proc.pid  # PX4 belongs to a worker process, not to the eval itself
+        proc.terminate()  # SIGTERM: what systemd, `kill` or a CI timeout send
+        proc.wait(30)
+        assert _wait_gone(worker, 20.0), "the eval's worker outlived it"
+        assert _wait_gone(pid, 20.0), "PX4 outlived the eval"
+        time.sleep(2.0)
+        assert _px4_under(tmp_path) == [], "a PX4 was started after the eval was killed"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
