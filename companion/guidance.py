@@ -34,7 +34,9 @@ envelope, every constraint convex in ``(t_x, s)``:
     ``R_y(phi) e_x`` and the LOS, which is ``|phi|`` (roll turns the vehicle about the LOS):
     ``|t_x| <= t_z tan(gamma_bar)``. ``fov="paper"`` keeps the paper's ``cos(phi) cos(theta) >= cos(gamma_bar)``,
     i.e. ``t_x^2 + t_y^2 <= (t_z tan(gamma_bar))^2``, stricter: it caps sideways acceleration at
-    ``g tan(gamma_bar)``;
+    ``g tan(gamma_bar)``. A camera pitched up by ``uptilt`` mu (exact mode only) has the optical axis
+    ``cos(mu) x_B + sin(mu) z_B``: ``cos(mu) t_z / hypot(t_x, t_z) + sin(mu) t_x / |t| >= cos(gamma_bar)``,
+    one or two intervals of ``t_x`` found by root finding (:func:`_uptilt_pieces`; docs/guidance.md "Camera uptilt");
 (d) flight envelope: the thrust axis at most ``max_tilt`` from vertical, ``u . t >= cos(max_tilt) |t|`` with
     ``u`` world up in the PN frame (a second-order cone). Together with (a) this excludes the knife-edge
     setpoints (roll +-90 deg at low thrust) the solver used to produce.
