@@ -10,7 +10,9 @@ Policy (one state machine, both tracker kinds):
   neither overlaps the prediction nor lies within ``max_jump`` of it is a jump and is rejected.
   The Kalman-filtered box (smoothing before the LOS) is the output.
 * misses: the Kalman prediction is output for up to ``coast_time`` with decaying confidence, then
-  the target is lost and the search starts again.
+  the target is lost and the search starts again. A prediction whose centre is too uncertain
+  (``COAST_MAX_SIGMA``: a long gap between frames, an erratic track) is not output (no box), though the
+  track is kept until ``coast_time``.
 * consistency (perception/tracker.py): only plausible boxes (aspect of a gate unless cut by the border)
   acquire or continue a track, and only measurements whose size change an approach explains continue it.
 * a better candidate: the best detection that does not continue the track is followed as a challenger;
@@ -41,6 +43,12 @@ from perception.types import BoundingBox
 if TYPE_CHECKING:
     from companion.config import Config
     from companion.config_perception import PerceptionConfig
+
+
+# A coasted box is output only while the Kalman filter's centre uncertainty (1 sigma) is below this fraction of
+# the box's smaller side: at 30 fps a 300 ms coast stays far below it; after a 0.2 s gap (5 Hz) on a jerky
+# track it does not, and such predictions were the most frequent wrong-target boxes on the real dev sequences.
+COAST_MAX_SIGMA = 0.25
 
 
 @dataclass
@@ -234,6 +242,10 @@ class Pipeline:
             if ch is not None and ch.score.streak >= 1:
                 self.candidate, self.candidate_count = ch.box, min(ch.score.streak, self.pc.confirm_frames - 1)
             self.challenger = None
+            return None
+        if self.kf.centre_sigma > COAST_MAX_SIGMA * min(pred.w, pred.h):
+            # the prediction may have left the gate (a long frame gap, an erratic track): no box, keep the track
+            self.stats.unconfident += 1
             return None
         self.stats.coasted += 1
         if uncertain:

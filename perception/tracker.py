@@ -132,6 +132,12 @@ class BoxKalman:
     def velocity(self) -> np.ndarray:
         return self.kf.statePost[4:, 0].copy()
 
+    @property
+    def centre_sigma(self) -> float:
+        """Standard deviation (px) of the box centre, the larger axis: how far a prediction may have drifted."""
+        p = self.kf.errorCovPost
+        return math.sqrt(max(float(p[0, 0]), float(p[1, 1]), 0.0))
+
     def predict(self, dt: float) -> BoundingBox:
         dt = max(float(dt), 1e-3)
         f = np.eye(8)

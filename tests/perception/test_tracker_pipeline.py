@@ -156,6 +156,33 @@ def test_a_confident_detection_acquires_on_its_own_frame() -> None:
     assert p.process(FRAME, 0.0) is None and p.process(FRAME, 1 / 30) is not None
 
 
+def test_an_uncertain_prediction_is_no_box_but_keeps_the_track() -> None:
+    # a gate moving steadily, one missed frame, then the gate again
+    script = [[B(300 + 6 * k, 200, 60, 60)] for k in range(6)] + [[]] + [[B(342, 200, 60, 60)]]
+    # 30 fps: the prediction over 33 ms is certain enough: a coasted box
+    p = _pipe(script, confirm_frames=2, coast_time=0.3)
+    outs = [p.process(FRAME, k / 30) for k in range(len(script))]
+    assert outs[6] is not None and p.stats.coasted == 1
+    # 5 Hz: the same miss spans 0.2 s; the centre's uncertainty exceeds a quarter of the box: no box, ...
+    p = _pipe(script, confirm_frames=2, coast_time=0.3)
+    outs = [p.process(FRAME, k / 5) for k in range(len(script))]
+    assert outs[5] is not None and outs[6] is None and p.stats.coasted == 0 and p.stats.unconfident == 1
+    # ... but the track survives: the next detection continues it (no new acquisition)
+    assert outs[7] is not None and abs(outs[7].cx - 342) < 5 and p.stats.acquisitions == 1 and p.stats.losses == 0
+
+
+def test_kalman_centre_uncertainty_grows_with_the_gap() -> None:
+    kf = BoxKalman(B(300, 200, 60, 60), smoothing=0.3)
+    for k in range(5):
+        kf.predict(1 / 30)
+        kf.correct(B(300 + k, 200, 60, 60))
+    s0 = kf.centre_sigma
+    kf.predict(1 / 30)
+    s1 = kf.centre_sigma
+    kf.predict(0.3)
+    assert 0 < s0 < s1 < kf.centre_sigma
+
+
 def test_box_smoothing_reduces_jitter() -> None:
     rng = np.random.default_rng(0)
     noisy = [[B(320 + rng.normal(0, 4), 240 + rng.normal(0, 4), 80 + rng.normal(0, 4), 80)] for _ in range(120)]
