@@ -6,6 +6,8 @@ exact box's width: how often the pipeline gave no box, how often its box is off 
 wrong target, not noise), the inliers' centre noise, the size error, and the frame-to-frame correlation of the
 centre error. What it is for: the geometric camera of the in-process studies models a detector with 1 px
 white noise (``sim.camera.pixel_noise``); this says what the real pipeline does on our own renders.
+``--camera geometric`` measures the geometric camera's own box error the same way (with
+``--set sim.camera.noise_model=detector``: the fit of the detector model, docs/noise.md).
 
     .venv/bin/python tools/measure_box_error.py --config config/vehicles/sih.yaml --runs 2 [--json out.json]
 """
@@ -61,6 +63,20 @@ def _paired_cameras(rows: list[Row], run: list[int]) -> Callable[..., Callable[.
     return substitute
 
 
+def _paired_geometric(rows: list[Row], run: list[int]) -> type[GeometricCamera]:
+    """GeometricCamera with every capture also projected exactly (clipped, no noise) and both boxes recorded."""
+
+    class Paired(GeometricCamera):
+        def capture(self, t: float, p: Any, R: Any, c: Any, n: Any, r: float) -> Any:  # type: ignore[override]
+            b = super().capture(t, p, R, c, n, r)
+            e = GeometricCamera.box_exact(self, p, R, c, n, r, t) if self.clip else None
+            rows.append((run[0], t, None if b is None else (b.cx, b.cy, b.w, b.h),
+                         None if e is None else (e.cx, e.cy, e.w, e.h)))
+            return b
+
+    return Paired
+
+
 def summarise(rows: list[Row]) -> dict[str, Any]:
     with_exact = [r for r in rows if r[3] is not None]
     hits = np.array([(r[3][2], r[2][0] - r[3][0], r[2][1] - r[3][1], (r[2][2] - r[3][2]) / r[3][2], r[0])
@@ -101,15 +117,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=2, help="runs per gate motion")
     ap.add_argument("--seed", type=int, default=5000)
     ap.add_argument("--json", type=Path, help="write the summary here")
+    ap.add_argument("--camera", choices=("rendered", "geometric"), default="rendered",
+                    help="geometric: the in-process camera's own error (its sim.camera.noise_model)")
     a = ap.parse_args(argv)
     cfg = load_config(a.config, a.sets)
     rows: list[Row] = []
     run = [0]
-    simcamera.geometric_camera_substitute = _paired_cameras(rows, run)
+    if a.camera == "rendered":
+        simcamera.geometric_camera_substitute = _paired_cameras(rows, run)
+    else:
+        runner.GeometricCamera = _paired_geometric(rows, run)  # type: ignore[misc]
     for motion in runner.MOTIONS:
         for _ in range(a.runs):
             run[0] += 1
-            r = runner.run_once(cfg, runner.RunSpec(motion, seed=a.seed + run[0], camera="rendered"))
+            r = runner.run_once(cfg, runner.RunSpec(motion, seed=a.seed + run[0], camera=a.camera))
             print(f"run {run[0]:3d} {motion:12s} success 1 m: {r.outcome.success(1.0)!s:5s} "
                   f"{r.outcome.failure(1.0) or ''}", flush=True)
     s = summarise(rows)
