@@ -4,6 +4,7 @@ as the config builds it, brute force and SLSQP; the sign of ``camera.mount.pitch
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from companion.sim.camera import GeometricCamera
 from perception.los import CameraModel
 from perception.types import BoundingBox
 
+SIH = str(Path(__file__).resolve().parent.parent / "config" / "vehicles" / "sih.yaml")
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -308,7 +310,7 @@ def test_closed_loop_sign_of_the_uptilt_on_the_sih_profile() -> None:
 
     t_gate, pitch = {}, {}
     for mu in (-15.0, 0.0, 15.0):
-        cfg = load_config(["config/vehicles/sih.yaml"], [f"camera.mount.pitch={mu} deg"])
+        cfg = load_config([SIH], [f"camera.mount.pitch={mu} deg"])
         r = run_once(cfg, RunSpec("stationary", 1, protocol="controller"), record=True)
         assert r.outcome.crossed and r.outcome.t_gate is not None
         t_gate[mu] = r.outcome.t_gate
@@ -350,3 +352,12 @@ def test_uptilt_saturation_scale_is_the_largest_feasible(data) -> None:
         for f0 in (0.3, 0.9) for phi0 in (0.0, p.uptilt + p.gamma_bar) for th0 in (-0.3, 0.3)
     )
     assert best > 1e-10
+
+
+def test_check_summary_names_the_uptilt() -> None:
+    from companion.check import summary_lines
+
+    lines = summary_lines(load_config([SIH]))
+    assert any("mount roll/pitch/yaw 0/15/0 deg" in x for x in lines)
+    assert any("FOV bound from the camera pitched up 15 deg" in x for x in lines)
+    assert not any("pitched up" in x for x in summary_lines(load_config()))
