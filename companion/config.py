@@ -194,6 +194,8 @@ class LosFilterConfig(Section):
         "Kalman filter on the LOS (perception/los.py LosKalman; docs/noise.md), rate_cutoff still applies"
     )
     kalman_accel: Number = Field(0.5, gt=0.0, le=1000.0, description="Kalman: white LOS acceleration, rad/s^2/rtHz")
+    kalman_accel_width: Number = Field(0.0, ge=0.0, le=10000.0, description="Kalman: > 0: the LOS acceleration "
+                                       "grows with the box, kalman_accel * (1 + size / this px); 0 = constant")
     kalman_px: Number = Field(1.5, gt=0.0, le=1000.0, description="Kalman: box-centre noise std at zero size, px")
     kalman_px_rel: Number = Field(0.03, ge=0.0, le=10.0, description="Kalman: + this times the box size, px/px")
     kalman_gate: Number = Field(4.0, gt=0.0, le=1000.0, description="Kalman: innovations beyond this many sigmas "

@@ -78,6 +78,7 @@ class ControllerParams:
     los_kalman: LosKalmanParams | None = None
     kalman_px: float = 1.5
     kalman_px_rel: float = 0.03
+    kalman_accel_width: float = 0.0  # px; > 0: process noise kalman_accel * (1 + box size / this)
 
 
 def los_kalman_params(cfg: Config) -> LosKalmanParams | None:
@@ -149,7 +150,7 @@ class PNController:
             delay_compensation=cfg.guidance.delay_compensation,
             own_lag=cfg.guidance.delay_compensation_lag,
             los_kalman=los_kalman_params(cfg), kalman_px=cfg.los_filter.kalman_px,
-            kalman_px_rel=cfg.los_filter.kalman_px_rel,
+            kalman_px_rel=cfg.los_filter.kalman_px_rel, kalman_accel_width=cfg.los_filter.kalman_accel_width,
         )
         return cls(cp, camera)
 
@@ -359,7 +360,10 @@ class PNController:
             # The Kalman filter gives the LOS and its rate; a gated box leaves its prediction (PN goes on).
             size = max(box.w, box.h) if box is not None else 0.0
             sigma = (self.p.kalman_px + self.p.kalman_px_rel * size) / float(self.camera.K[0, 0])
-            if not self._kf.update(t, l_enu, sigma):
+            # The LOS accelerates more as the gate nears (~1/range^2): optionally more process noise for a bigger box.
+            w0 = self.p.kalman_accel_width
+            acc = self._kf.p.accel_std * (1.0 + size / w0) if w0 > 0.0 else None
+            if not self._kf.update(t, l_enu, sigma, acc):
                 rejected = f"innovation gate ({self._kf.last_nis:.1f} sigma)"
             assert self._kf.l is not None
             l_f = self._kf.l.copy()

@@ -157,9 +157,10 @@ class LosKalman:
         self.rejections = 0
         self.last_nis = 0.0
 
-    def update(self, t: float, l: np.ndarray, sigma: float) -> bool:  # noqa: E741
+    def update(self, t: float, l: np.ndarray, sigma: float, accel_std: float | None = None) -> bool:  # noqa: E741
         """Fuse the unit LOS ``l`` measured at ``t`` with noise std ``sigma`` (rad). False: rejected by the gate
-        (``self.l``/``self.rate`` then hold the prediction to ``t``)."""
+        (``self.l``/``self.rate`` then hold the prediction to ``t``). ``accel_std`` overrides the parameter's
+        process noise for this step."""
         z = np.asarray(l, dtype=float)
         sigma = max(float(sigma), 1e-6)
         if self.l is None or self.t is None or not (0.0 < t - self.t <= self.p.max_dt):
@@ -172,7 +173,7 @@ class LosKalman:
         p00 = P[0, 0] + dt * (2.0 * P[0, 1] + dt * P[1, 1])
         p01 = P[0, 1] + dt * P[1, 1]
         p11 = P[1, 1]
-        q = self.p.accel_std ** 2
+        q = (self.p.accel_std if accel_std is None else accel_std) ** 2
         p00 += q * dt ** 3 / 3.0
         p01 += q * dt ** 2 / 2.0
         p11 += q * dt

@@ -91,14 +91,14 @@ PROFILES: dict[str, DetectorNoiseParams] = {
         rho1=0.85, rho2=0.55, size_bias=(0.08, 0.04, 0.03, 0.0, -0.12, -0.2),
         size_std=0.04, lag_x=0.0094, lag_y=0.0055,
     ),
-    "sih": DetectorNoiseParams(
-        widths=(38.0, 60.0, 113.0, 253.0, 400.0, 450.0),
-        std_x=(1.4, 3.2, 4.2, 6.2, 6.5, 6.5), std_y=(1.3, 2.3, 2.9, 4.2, 3.6, 3.6),
-        wrong=(0.1, 0.03, 0.05, 0.07, 0.1, 0.55),
-        glitch=(0.0, 0.0, 0.02, 0.27, 0.3, 0.25),
-        miss=(0.02, 0.02, 0.02, 0.02, 0.02, 0.02), miss_stay=0.63, wrong_stay=0.46,
-        rho1=0.88, rho2=0.68, size_bias=(0.1, 0.06, 0.04, 0.07, -0.1, -0.2),
-        size_std=0.04,
+    "sih": DetectorNoiseParams(  # lag not measured on SIH: the x500's (the same pipeline)
+        widths=(30.0, 60.0, 113.0, 253.0, 400.0, 450.0),
+        std_x=(1.2, 1.8, 3.8, 4.8, 6.0, 6.0), std_y=(1.3, 1.5, 2.8, 3.0, 2.4, 2.4),
+        wrong=(0.3, 0.02, 0.05, 0.05, 0.1, 0.56),
+        glitch=(0.0, 0.01, 0.01, 0.08, 0.14, 0.14),
+        miss=(0.3, 0.02, 0.02, 0.02, 0.0, 0.0), miss_stay=0.74, wrong_stay=0.46,
+        rho1=0.88, rho2=0.68, size_bias=(0.1, 0.06, 0.04, 0.03, -0.12, -0.22),
+        size_std=0.04, lag_x=0.0094, lag_y=0.0055,
     ),
 }
 

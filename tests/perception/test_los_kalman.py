@@ -143,3 +143,20 @@ def test_controller_with_the_kalman_filter_gates_a_wrong_box_and_keeps_flying():
     # Low-pass default unchanged: the same box sequence gives no gate at all.
     lp = PNController.from_config(load_config())
     assert lp.p.los_kalman is None
+
+
+def test_more_process_noise_follows_a_turning_los_faster():
+    # A LOS that starts turning at 1 rad/s: the filter with more process noise (the size-scaled option) is closer.
+    los = _great_circle(_unit([0.0, 0.0, 1.0]), _unit([1.0, 0.0, 0.0]), 1.0)
+    slow, fast = LosKalman(PARAMS), LosKalman(PARAMS)
+    for k in range(30):
+        for kf in (slow, fast):
+            kf.update(k / 30, _unit([1.0, 0.0, 0.0]), SIGMA)
+    for k in range(30, 40):
+        l_true = los((k - 29) / 30)[0]
+        slow.update(k / 30, l_true, SIGMA)
+        fast.update(k / 30, l_true, SIGMA, accel_std=4.0 * PARAMS.accel_std)
+    assert fast.P[1, 1] > slow.P[1, 1]
+    assert abs(np.linalg.norm(fast.rate) - 1.0) < abs(np.linalg.norm(slow.rate) - 1.0)
+    ctrl = PNController.from_config(load_config([], ["los_filter.kind=kalman", "los_filter.kalman_accel_width=50"]))
+    assert ctrl.p.kalman_accel_width == 50.0 and ctrl.p.los_kalman is not None
