@@ -88,6 +88,8 @@ def summarise(rows: list[Row]) -> dict[str, Any]:
         "by_width": [],
     }
     dc = np.hypot(hits[:, 1], hits[:, 2])
+    widths_all = np.array([r[3][2] for r in with_exact])
+    missed = np.array([r[2] is None for r in with_exact])
     for lo, hi in WIDTH_BINS:
         m = (hits[:, 0] >= lo) & (hits[:, 0] < hi)
         if m.sum() < 5:
@@ -95,6 +97,7 @@ def summarise(rows: list[Row]) -> dict[str, Any]:
         inl = m & (dc < 15.0)
         out["by_width"].append({
             "width_px": [lo, hi], "n": int(m.sum()),
+            "no_box": float(missed[(widths_all >= lo) & (widths_all < hi)].mean()),
             "off_15px": float(np.mean(dc[m] > 15.0)), "off_50px": float(np.mean(dc[m] > 50.0)),
             "inlier_std_px": [float(hits[inl, 1].std()), float(hits[inl, 2].std())],
             "median_centre_error_px": float(np.median(dc[m])),
@@ -107,6 +110,21 @@ def summarise(rows: list[Row]) -> dict[str, Any]:
             x = e[:, 1] - e[:, 1].mean()
             ac.append([float(np.corrcoef(x[:-k], x[k:])[0, 1]) for k in (1, 2, 5)])
     out["inlier_cx_autocorr_lag_1_2_5"] = np.nanmean(ac, axis=0).tolist() if ac else None
+    # Misses come in spells: the mean length of a run of frames without a box while the gate is in view.
+    spells, cur, last_run = [], 0, None
+    for r in with_exact:
+        if r[0] != last_run and cur:
+            spells.append(cur)
+            cur = 0
+        last_run = r[0]
+        if r[2] is None:
+            cur += 1
+        elif cur:
+            spells.append(cur)
+            cur = 0
+    if cur:
+        spells.append(cur)
+    out["no_box_spell_mean_frames"] = float(np.mean(spells)) if spells else 0.0
     return out
 
 
@@ -138,11 +156,13 @@ def main(argv: list[str] | None = None) -> int:
           f"boxes with no gate in view {s['box_without_gate']}")
     for b in s["by_width"]:
         lo, hi = b["width_px"]
-        print(f"width {lo:4d}-{hi:5d} px: n {b['n']:5d}  off >15 px {b['off_15px']:.2f}  >50 px {b['off_50px']:.2f}  "
+        print(f"width {lo:4d}-{hi:5d} px: n {b['n']:5d}  no box {b['no_box']:.2f}  "
+              f"off >15 px {b['off_15px']:.2f}  >50 px {b['off_50px']:.2f}  "
               f"inlier std {b['inlier_std_px'][0]:.1f}/{b['inlier_std_px'][1]:.1f} px  "
               f"median centre error {b['median_centre_error_px']:.1f} px  "
               f"width error {b['width_error_rel_median']:+.2f}")
     print(f"inlier centre-error autocorrelation at lag 1/2/5 frames: {s['inlier_cx_autocorr_lag_1_2_5']}")
+    print(f"mean spell of frames without a box (gate in view): {s['no_box_spell_mean_frames']:.1f}")
     if a.json:
         a.json.write_text(json.dumps(s, indent=2))
     return 0

@@ -19,7 +19,7 @@ MODEL = CameraModel.from_config(CameraConfig())
 P = np.array([0.0, 0.0, 10.0])
 LEVEL = np.eye(3)
 FACING = np.array([-1.0, 0.0, 0.0])
-CLEAN = dataclasses.replace(PROFILES["x500"], wrong=(0.0,) * 6, glitch=(0.0,) * 6, miss=0.0)
+CLEAN = dataclasses.replace(PROFILES["x500"], wrong=(0.0,) * 6, glitch=(0.0,) * 6, miss=(0.0,) * 6)
 
 
 def _errors(params: DetectorNoiseParams, box: BoundingBox, n: int, seed: int = 0) -> list[BoundingBox | None]:
@@ -46,7 +46,7 @@ def test_centre_error_std_and_autocorrelation_match_the_parameters(width):
     boxes = _errors(CLEAN, box, 40_000, seed=int(width))
     ex = np.array([b.cx for b in boxes]) - 320.0
     ey = np.array([b.cy for b in boxes]) - 240.0
-    sx, sy, _, _ = CLEAN.at(width)
+    sx, sy, _, _, bias, _ = CLEAN.at(width)
     assert abs(ex.mean()) < 0.1 * sx and abs(ey.mean()) < 0.1 * sy
     assert math.isclose(ex.std(), sx, rel_tol=0.05) and math.isclose(ey.std(), sy, rel_tol=0.05)
     for e in (ex, ey):
@@ -55,7 +55,7 @@ def test_centre_error_std_and_autocorrelation_match_the_parameters(width):
     # x and y errors are independent
     assert abs(np.corrcoef(ex, ey)[0, 1]) < 0.05
     w = np.array([b.w for b in boxes]) / width - 1.0
-    assert math.isclose(float(np.median(w)), CLEAN.size_bias, abs_tol=0.005)
+    assert math.isclose(float(np.median(w)), bias, abs_tol=0.005)
     assert math.isclose(float(w.std()), CLEAN.size_std, rel_tol=0.05)
 
 
@@ -67,23 +67,39 @@ def test_size_dependence_interpolates_and_holds_at_the_ends():
     assert math.isclose(p.at(mid)[0], 0.5 * (p.std_x[1] + p.std_x[2]), rel_tol=1e-9)
 
 
-def test_miss_wrong_target_and_glitch_rates():
-    n = 40_000
-    params = dataclasses.replace(CLEAN, miss=0.05, wrong=(0.1,) * 6, glitch=(0.06,) * 6,
-                                 std_x=(0.5,) * 6, std_y=(0.5,) * 6)
+@pytest.mark.parametrize("stay", [0.0, 0.6])
+def test_miss_wrong_target_and_glitch_rates(stay):
+    n = 40_000 if stay == 0.0 else 160_000  # spells: fewer independent draws per frame
+    params = dataclasses.replace(CLEAN, miss=(0.05,) * 6, wrong=(0.1,) * 6, glitch=(0.06,) * 6,
+                                 std_x=(0.5,) * 6, std_y=(0.5,) * 6, miss_stay=stay, wrong_stay=stay)
     box = BoundingBox(320.0, 240.0, 100.0, 100.0, 1.0, 0.0)
     boxes = _errors(params, box, n, seed=7)
     got = [b for b in boxes if b is not None]
     miss = 1.0 - len(got) / n
-    tol = 4.0 * math.sqrt(0.05 * 0.95 / n)
+    tol = 4.0 * math.sqrt(0.05 * 0.95 / n) * math.sqrt((1 + stay) / (1 - stay))  # AR(1)-like variance inflation
     assert abs(miss - 0.05) < tol
+    spells = np.diff(np.flatnonzero(np.diff(np.r_[0, [b is None for b in boxes], 0])))[::2]
+    start = 0.05 * (1.0 - stay) / (1.0 - 0.05 * stay - 0.1 * stay)  # a new miss spell's chance per draw
+    assert math.isclose(float(spells.mean()), 1.0 / (1.0 - stay - (1.0 - stay) * start), rel_tol=0.05)
     off = np.array([math.hypot(b.cx - 320.0, b.cy - 240.0) for b in got])
     # With 0.5 px noise, an error over 10 px is a wrong target (> 50 px) or a glitch (15-50 px).
     for share, lo, hi in ((0.1, 50.0, 1e9), (0.06, 15.0, 50.0)):
         frac = float(np.mean((off > lo - 2.0) & (off <= hi + 2.0)))
-        assert abs(frac - share) < 4.0 * math.sqrt(share * (1 - share) / len(got)) + 0.005
+        if lo == 15.0:
+            share *= 1.0 - 0.1  # glitches are drawn on the frames that are not wrong targets
+        infl = math.sqrt((1 + stay) / (1 - stay)) if lo == 50.0 else 1.0
+        assert abs(frac - share) < 4.0 * math.sqrt(share * (1 - share) / len(got)) * infl + 0.005
     assert np.all(off[off > 10.0] >= 13.0)  # nothing in between: the inliers are tight
     assert all(0.0 <= b.cx <= 640.0 and 0.0 <= b.cy <= 480.0 and b.w >= 1.0 for b in got)
+
+
+def test_the_box_trails_the_image_motion_by_the_lag():
+    params = dataclasses.replace(CLEAN, std_x=(1e-6,) * 6, std_y=(1e-6,) * 6, lag_x=0.01, lag_y=0.005)
+    dn = DetectorNoise(params, np.random.default_rng(0), 640, 480)
+    for k in range(10):  # the ring moves at 300 px/s right and 150 px/s down
+        b = dn.apply(BoundingBox(200.0 + 10.0 * k, 200.0 + 5.0 * k, 50.0, 50.0, 1.0, k / 30))
+    assert math.isclose(b.cx, 290.0 - 0.01 * 300.0, abs_tol=1e-3)
+    assert math.isclose(b.cy, 245.0 - 0.005 * 150.0, abs_tol=1e-3)
 
 
 def test_no_box_in_gives_no_box_out():
