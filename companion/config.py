@@ -189,6 +189,15 @@ class LosFilterConfig(Section):
     rate_cutoff: Hertz = Field(
         0.0, ge=0.0, le=1000.0, description="low-pass on the LOS rate vector (lambda_dot n), Hz; 0 = off"
     )
+    kind: Literal["lowpass", "kalman"] = Field(
+        "lowpass", description="lowpass: the low-pass above, rate by differencing; kalman: constant-velocity "
+        "Kalman filter on the LOS (perception/los.py LosKalman; docs/noise.md), rate_cutoff still applies"
+    )
+    kalman_accel: Number = Field(0.5, gt=0.0, le=1000.0, description="Kalman: white LOS acceleration, rad/s^2/rtHz")
+    kalman_px: Number = Field(1.5, gt=0.0, le=1000.0, description="Kalman: box-centre noise std at zero size, px")
+    kalman_px_rel: Number = Field(0.03, ge=0.0, le=10.0, description="Kalman: + this times the box size, px/px")
+    kalman_gate: Number = Field(4.0, gt=0.0, le=1000.0, description="Kalman: innovations beyond this many sigmas "
+                                "are rejected (wrong target)")
 
 
 class Config(Section):

@@ -27,7 +27,7 @@ from companion import guidance
 from companion.closing import ClosingParams, ClosingSpeedEstimator
 from companion.frames import P_NED_ENU, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import GuidanceParams, Setpoint
-from perception.los import CameraModel, LosFilter
+from perception.los import CameraModel, LosFilter, LosKalman, LosKalmanParams
 from perception.types import BoundingBox
 
 if TYPE_CHECKING:
@@ -73,6 +73,19 @@ class ControllerParams:
     # later). own_lag: time constant of the first-order model of how the commanded acceleration is reached.
     delay_compensation: bool = False
     own_lag: float = 0.7
+    # LOS estimation by a constant-velocity Kalman filter (los_filter.kind: kalman) instead of the low-pass +
+    # differencing: None = the low-pass. Its measurement noise is kalman_px + kalman_px_rel * box size (px).
+    los_kalman: LosKalmanParams | None = None
+    kalman_px: float = 1.5
+    kalman_px_rel: float = 0.03
+
+
+def los_kalman_params(cfg: Config) -> LosKalmanParams | None:
+    """The LOS Kalman filter's parameters (``los_filter.kind: kalman``), or None for the low-pass."""
+    lf = cfg.los_filter
+    if lf.kind != "kalman":
+        return None
+    return LosKalmanParams(accel_std=lf.kalman_accel, gate=lf.kalman_gate, reacquire=3, max_dt=lf.max_dt)
 
 
 def closing_params(cfg: Config) -> ClosingParams | None:
@@ -95,6 +108,7 @@ class PNController:
         self.p = params
         self.camera = camera
         self._filter = LosFilter(params.los_cutoff_hz, params.max_dt)
+        self._kf = LosKalman(params.los_kalman) if params.los_kalman is not None else None
         self._closing = ClosingSpeedEstimator(params.closing, camera) if params.closing is not None else None
         self._half_fov = half_fov(camera)
         self.reset()
@@ -134,6 +148,8 @@ class PNController:
             gate_radius=cfg.guidance.gate_radius,
             delay_compensation=cfg.guidance.delay_compensation,
             own_lag=cfg.guidance.delay_compensation_lag,
+            los_kalman=los_kalman_params(cfg), kalman_px=cfg.los_filter.kalman_px,
+            kalman_px_rel=cfg.los_filter.kalman_px_rel,
         )
         return cls(cp, camera)
 
@@ -148,6 +164,8 @@ class PNController:
 
     def reset(self) -> None:
         self._filter.reset()
+        if self._kf is not None:
+            self._kf.reset()
         self._l_prev: np.ndarray | None = None  # filtered LOS (ENU) of the last used frame
         self._t_prev: float | None = None
         self._t_last: float | None = None  # time of the last step, used or not
@@ -256,6 +274,8 @@ class PNController:
             # The "jump" persisted: treat it as a new target and restart the filter there.
             self._jumps = 0
             self._filter.reset()
+            if self._kf is not None:
+                self._kf.reset()
             self._l_prev = None
             self._w = None
             if self._closing is not None:
@@ -333,10 +353,21 @@ class PNController:
         return gp if g >= gp.gamma_bar else replace(gp, gamma_bar=g)
 
     def _pn(self, t: float, l_enu: np.ndarray, R_ned_frd: np.ndarray, box: BoundingBox | None = None) -> ControlOutput:
-        l_f = self._filter.update(t, l_enu)
         dt = t - self._t_prev if self._t_prev is not None else 0.0
-        rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
-        lambda_dot, n = self._smooth_rate(l_f, rate.lambda_dot * rate.n, dt)
+        rejected = None
+        if self._kf is not None:
+            # The Kalman filter gives the LOS and its rate; a gated box leaves its prediction (PN goes on).
+            size = max(box.w, box.h) if box is not None else 0.0
+            sigma = (self.p.kalman_px + self.p.kalman_px_rel * size) / float(self.camera.K[0, 0])
+            if not self._kf.update(t, l_enu, sigma):
+                rejected = f"innovation gate ({self._kf.last_nis:.1f} sigma)"
+            assert self._kf.l is not None
+            l_f = self._kf.l.copy()
+            lambda_dot, n = self._smooth_rate(l_f, self._kf.rate, dt)
+        else:
+            l_f = self._filter.update(t, l_enu)
+            rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
+            lambda_dot, n = self._smooth_rate(l_f, rate.lambda_dot * rate.n, dt)
         self._lam = lambda_dot
         if self.p.delay_compensation:
             lambda_dot, n = self._predict_rate(t, l_f, lambda_dot, n)
@@ -362,7 +393,8 @@ class PNController:
                 a_net = a_net + (self._drag - float(self._drag @ l_f) * l_f)
             self._note_command(a_net)
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, None, v_rel)
+        return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
+                             v_rel)
 
     def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
         """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies

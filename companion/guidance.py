@@ -34,7 +34,9 @@ envelope, every constraint convex in ``(t_x, s)``:
     ``R_y(phi) e_x`` and the LOS, which is ``|phi|`` (roll turns the vehicle about the LOS):
     ``|t_x| <= t_z tan(gamma_bar)``. ``fov="paper"`` keeps the paper's ``cos(phi) cos(theta) >= cos(gamma_bar)``,
     i.e. ``t_x^2 + t_y^2 <= (t_z tan(gamma_bar))^2``, stricter: it caps sideways acceleration at
-    ``g tan(gamma_bar)``;
+    ``g tan(gamma_bar)``. A camera pitched up by ``uptilt`` mu (exact mode only) has the optical axis
+    ``cos(mu) x_B + sin(mu) z_B``: ``cos(mu) t_z / hypot(t_x, t_z) + sin(mu) t_x / |t| >= cos(gamma_bar)``,
+    one or two intervals of ``t_x`` found by root finding (:func:`_uptilt_pieces`; docs/guidance.md "Camera uptilt");
 (d) flight envelope: the thrust axis at most ``max_tilt`` from vertical, ``u . t >= cos(max_tilt) |t|`` with
     ``u`` world up in the PN frame (a second-order cone). Together with (a) this excludes the knife-edge
     setpoints (roll +-90 deg at low thrust) the solver used to produce.
@@ -58,7 +60,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
 
 from companion.frames import euler_ned_deg_from_R, quat_wxyz_from_R
 
@@ -250,8 +251,9 @@ def _uptilt_pieces(t_y: float, t_z: float, mu: float, gamma_bar: float) -> list[
     ``F(u) = o . l - cos(gamma_bar) = cos(mu) / sqrt(1 + u^2) + sin(mu) u / sqrt(u^2 + k) - cos(gamma_bar) >= 0``.
     For mu > 0 (mu < 0 mirrors u) F rises on u <= 0. F' = 0 where ``G(u) = u ((u^2 + k) / (1 + u^2))^1.5 =
     tan(mu) k``; G is monotone between the roots of ``w^2 + (4 - 2k) w + k`` (w = u^2), which exist for k > 4
-    (roll beyond 60 deg): at most three critical points, one per monotone piece of G, each found by Brent's
-    method. F is monotone between them, so the set F >= 0 follows exactly, its ends moved to the feasible side.
+    (``|t_y| > sqrt(3) t_z``): at most three critical points, one per monotone piece of G. F is monotone between
+    them, so the set F >= 0 (one or two intervals) follows exactly; roots by safeguarded Newton
+    (:func:`_monotone_root`), each end moved to the feasible side.
     """
     cm, sm, cg = math.cos(mu), math.sin(abs(mu)), math.cos(gamma_bar)
     k = 1.0 + (t_y / t_z) ** 2
@@ -262,13 +264,24 @@ def _uptilt_pieces(t_y: float, t_z: float, mu: float, gamma_bar: float) -> list[
     def dF(x: float) -> float:
         return sm * k / (x * x + k) ** 1.5 - cm * x / (1.0 + x * x) ** 1.5
 
-    def root(f, out: float, ins: float) -> float:  # f(out) < 0 <= f(ins): the root, moved to the feasible side
-        x = brentq(f, min(out, ins), max(out, ins), xtol=1e-15, rtol=8.9e-16, maxiter=200)
-        step = 1e-16 * (1.0 + abs(x))
-        while f(x) < 0.0 and (ins - x) * (ins - out) > 0.0:
-            x, step = x + math.copysign(step, ins - out), 2.0 * step
-        return x if f(x) >= 0.0 and (ins - x) * (ins - out) >= 0.0 else ins
+    def d2F(x: float) -> float:
+        return -cm * (1.0 - 2.0 * x * x) / (1.0 + x * x) ** 2.5 - 3.0 * sm * k * x / (x * x + k) ** 2.5
 
+    def root(f, out: float, ins: float, guess: float) -> float:  # f(out) < 0 <= f(ins): root, on the feasible side
+        x = _monotone_root(f, dF, out, ins, guess)
+        step = 1e-16 * (1.0 + abs(x))
+        while f(x) < 0.0:
+            x, step = x + math.copysign(step, ins - out), 2.0 * step
+            if (ins - x) * (ins - out) <= 0.0:
+                return ins
+        return x
+
+    a = -math.sqrt(max((cm / cg) ** 2 - 1.0, 0.0)) - 1e-9  # below a: F < cos(mu) / sqrt(1 + u^2) - cg <= 0
+    b = math.inf if sm >= cg else math.sqrt(max((cm / (cg - sm)) ** 2 - 1.0, 0.0)) * (1.0 + 1e-9) + 1e-9
+    g_lo, g_hi = math.tan(max(abs(mu) - gamma_bar, -1.5)), math.tan(min(abs(mu) + gamma_bar, 1.5))  # k = 1 roots
+    if k <= 4.0 and b < math.inf and F(0.0) >= 0.0:  # the common case: one maximum, F(a) < 0 <= F(0), F(b) < 0
+        lo, hi = root(F, a, 0.0, g_lo), root(F, b, 0.0, g_hi)
+        return [(lo * t_z, hi * t_z)] if mu > 0.0 else [(-hi * t_z, -lo * t_z)]
     # Critical points of F on u > 0. dF > 0 at 0, dF < 0 beyond tan(mu) k (there (u^2 + k) / (1 + u^2) >= 1).
     edges = [0.0]
     if k > 4.0:
@@ -281,27 +294,26 @@ def _uptilt_pieces(t_y: float, t_z: float, mu: float, gamma_bar: float) -> list[
         if dlo == 0.0:
             crit.append(lo)
         elif dlo * dhi < 0.0:
-            crit.append(brentq(dF, lo, hi, xtol=1e-15, rtol=8.9e-16, maxiter=200))
-    # Nodes between which F is monotone: below a, F < cos(mu) / sqrt(1 + u^2) - cos(gamma_bar) <= 0; beyond b,
-    # F < cos(mu) / sqrt(1 + u^2) + sin(mu) - cos(gamma_bar) <= 0, unless sin(mu) >= cos(gamma_bar) (then F > 0
-    # on the whole tail: F falls towards sin(mu) from above).
-    a = -math.sqrt(max((cm / cg) ** 2 - 1.0, 0.0)) - 1e-9
+            crit.append(_monotone_root(dF, d2F, lo, hi, math.tan(abs(mu))))  # tan(mu): u* without roll (k = 1)
+    # Nodes between which F is monotone: a, the critical points, b. Beyond b F < cos(mu) / sqrt(1 + u^2) +
+    # sin(mu) - cos(gamma_bar) <= 0, unless sin(mu) >= cos(gamma_bar) (b = inf: F > 0 on the whole tail, falling
+    # towards sin(mu) from above).
     nodes = [a, *crit]
-    if sm < cg:
-        nodes.append(max(math.sqrt(max((cm / (cg - sm)) ** 2 - 1.0, 0.0)) * (1.0 + 1e-9) + 1e-9, 2.0 * nodes[-1]))
+    if b < math.inf:
+        nodes.append(max(b, 2.0 * nodes[-1]))
     vals = [F(x) for x in nodes]
     pieces: list[list[float]] = []
     for i in range(len(nodes) - 1):
         x0, x1, f0, f1 = nodes[i], nodes[i + 1], vals[i], vals[i + 1]
         if f0 < 0.0 and f1 < 0.0:
             continue
-        lo = x0 if f0 >= 0.0 else root(F, x0, x1)
-        hi = x1 if f1 >= 0.0 else root(F, x1, x0)
+        lo = x0 if f0 >= 0.0 else root(F, x0, x1, g_lo)
+        hi = x1 if f1 >= 0.0 else root(F, x1, x0, g_hi)
         if pieces and pieces[-1][1] == lo:
             pieces[-1][1] = hi
         else:
             pieces.append([lo, hi])
-    if sm >= cg and vals[-1] >= 0.0:
+    if b == math.inf and vals[-1] >= 0.0:
         if pieces and pieces[-1][1] == nodes[-1]:
             pieces[-1][1] = math.inf
         else:
@@ -309,6 +321,31 @@ def _uptilt_pieces(t_y: float, t_z: float, mu: float, gamma_bar: float) -> list[
     if mu < 0.0:
         return [(-hi * t_z, -lo * t_z) for lo, hi in reversed(pieces)]
     return [(lo * t_z, hi * t_z) for lo, hi in pieces]
+
+
+def _monotone_root(f, df, a: float, b: float, x: float) -> float:
+    """Root of ``f``, monotone on [a, b] with a sign change there: Newton from ``x``, bisection when it leaves the
+    bracket (an order of magnitude cheaper than scipy's brentq in this per-frame path)."""
+    lo, hi = min(a, b), max(a, b)
+    f_lo = f(lo)
+    if not lo < x < hi:
+        x = 0.5 * (lo + hi)
+    for _ in range(100):
+        fx = f(x)
+        if fx == 0.0:
+            return x
+        if (fx < 0.0) == (f_lo < 0.0):
+            lo = x
+        else:
+            hi = x
+        d = df(x)
+        xn = x - fx / d if d != 0.0 else 0.5 * (lo + hi)
+        if not lo < xn < hi:
+            xn = 0.5 * (lo + hi)
+        if abs(xn - x) <= 1e-15 * (1.0 + abs(x)) or hi - lo <= 1e-15 * (1.0 + abs(lo)):
+            return xn
+        x = xn
+    return x
 
 
 def _tilt_room(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams) -> float:
@@ -377,8 +414,16 @@ def demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidancePara
     in ``(t_x, s)``, so the feasible scales form an interval: closed-form bounds for (a), (b) and the paper's
     (c), then bisection when the tilt cone (d) is what binds.
     """
+    return _demand_scale(a_y, a_z, g_y, g_z, p, u, {})
+
+
+def _demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidanceParams,
+                  u: tuple[float, float, float], memo: dict[float, float | None]) -> float | None:
+    """:func:`demand_scale`, keeping every ``_best_tx`` it computes in ``memo`` (by scale) for :func:`solve`."""
     def feasible(s: float) -> bool:
-        return _best_tx(s * a_y - g_y, s * a_z - g_z, u, p) is not None
+        if s not in memo:
+            memo[s] = _best_tx(s * a_y - g_y, s * a_z - g_z, u, p)
+        return memo[s] is not None
 
     if not feasible(0.0):
         return None
@@ -459,11 +504,12 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
     g_y, g_z = -G * yz, -G * zz  # g^PN = R_W^PN g: its y part is 0 unless the LOS is vertical
     u = (lz, yz, zz)  # world up in the PN frame: the axis of the tilt cone
-    s = demand_scale(a_y, a_z, g_y, g_z, p, u)
+    memo: dict[float, float | None] = {}
+    s = _demand_scale(a_y, a_z, g_y, g_z, p, u, memo)
     if s is None:
         return _fallback(R_W_PN, u, p)
     t_y, t_z = s * a_y - g_y, s * a_z - g_z
-    t_x = _best_tx(t_y, t_z, u, p)
+    t_x = memo[s] if s in memo else _best_tx(t_y, t_z, u, p)
     if t_x is None:  # cannot happen: demand_scale checked this very s
         return _fallback(R_W_PN, u, p)
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)

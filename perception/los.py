@@ -110,3 +110,93 @@ class LosFilter:
             self.value = v / nv if nv > 1e-9 else np.asarray(l, dtype=float).copy()
         self.t = t
         return self.value
+
+
+@dataclass(frozen=True)
+class LosKalmanParams:
+    """Tuning of ``LosKalman``."""
+
+    accel_std: float  # rad/s^2 per sqrt(Hz): white LOS-acceleration density of the constant-velocity model
+    gate: float  # innovations beyond this many sigmas are rejected (wrong target, glitch)
+    reacquire: int = 3  # this many rejections in a row: a real jump, restart at the measurement
+    max_dt: float = 0.5  # s; a longer gap restarts the filter
+    rate0: float = 0.5  # rad/s, prior std of the LOS rate at a (re)start
+
+
+class LosKalman:
+    """Constant-velocity Kalman filter on the unit LOS (world frame): the LOS and its rate from noisy rays.
+
+    State per world axis: the LOS component and its rate, with white LOS acceleration (density ``accel_std^2``).
+    The measurement noise (rad) comes with each ray, so the caller scales it with the box (a detector's centre
+    error grows with the box). All three axes share the model and the noise, hence one 2x2 covariance. After
+    each step the LOS is renormalised and its rate made normal to it; the rate is ``lambda_dot n`` of the PN law
+    (``guidance.los_rate``'s n is the direction of dl/dt). An innovation beyond ``gate`` sigmas is rejected and
+    the prediction kept; ``reacquire`` rejections in a row restart the filter at the new LOS.
+    """
+
+    def __init__(self, params: LosKalmanParams) -> None:
+        p = params
+        if not (p.accel_std > 0.0 and p.gate > 0.0 and p.max_dt > 0.0 and p.rate0 > 0.0 and p.reacquire >= 1):
+            raise ValueError(f"LOS Kalman filter: accel_std, gate, max_dt and rate0 must be > 0, got {p}")
+        self.p = params
+        self.reset()
+
+    def reset(self) -> None:
+        self.l: np.ndarray | None = None  # unit LOS
+        self.rate = np.zeros(3)  # dl/dt, normal to l
+        self.P = np.zeros((2, 2))  # covariance of (component, rate), the same for each axis
+        self.t: float | None = None
+        self.rejections = 0
+        self.last_nis = 0.0  # normalised innovation (sigmas) of the last measurement
+
+    def _start(self, t: float, z: np.ndarray, sigma: float) -> None:
+        self.l = z.copy()
+        self.rate = np.zeros(3)
+        self.P = np.diag([sigma * sigma, self.p.rate0 ** 2])
+        self.t = t
+        self.rejections = 0
+        self.last_nis = 0.0
+
+    def update(self, t: float, l: np.ndarray, sigma: float) -> bool:  # noqa: E741
+        """Fuse the unit LOS ``l`` measured at ``t`` with noise std ``sigma`` (rad). False: rejected by the gate
+        (``self.l``/``self.rate`` then hold the prediction to ``t``)."""
+        z = np.asarray(l, dtype=float)
+        sigma = max(float(sigma), 1e-6)
+        if self.l is None or self.t is None or not (0.0 < t - self.t <= self.p.max_dt):
+            self._start(t, z, sigma)
+            return True
+        dt = t - self.t
+        # Predict: x <- F x, P <- F P F' + Q (white acceleration).
+        lp = self.l + dt * self.rate
+        P = self.P
+        p00 = P[0, 0] + dt * (2.0 * P[0, 1] + dt * P[1, 1])
+        p01 = P[0, 1] + dt * P[1, 1]
+        p11 = P[1, 1]
+        q = self.p.accel_std ** 2
+        p00 += q * dt ** 3 / 3.0
+        p01 += q * dt ** 2 / 2.0
+        p11 += q * dt
+        s = p00 + sigma * sigma
+        nu = z - lp
+        nis = math.sqrt(float(nu @ nu) / s)
+        self.last_nis = nis
+        self.t = t
+        if nis > self.p.gate:
+            self.rejections += 1
+            if self.rejections >= self.p.reacquire:
+                self._start(t, z, sigma)
+                return True
+            self._set(lp, self.rate, np.array([[p00, p01], [p01, p11]]))
+            return False
+        self.rejections = 0
+        k0, k1 = p00 / s, p01 / s
+        self._set(lp + k0 * nu, self.rate + k1 * nu,
+                  np.array([[(1.0 - k0) * p00, (1.0 - k0) * p01], [(1.0 - k0) * p01, p11 - k1 * p01]]))
+        return True
+
+    def _set(self, l: np.ndarray, rate: np.ndarray, P: np.ndarray) -> None:  # noqa: E741
+        n = math.sqrt(float(l @ l))
+        self.l = l / n if n > 1e-9 else self.l
+        assert self.l is not None
+        self.rate = rate - float(rate @ self.l) * self.l
+        self.P = P

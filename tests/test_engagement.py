@@ -85,13 +85,27 @@ def test_no_stable_track_lands_with_no_target():
     assert r.feed([box()] * 20)[-1].phase is Phase.LAND  # an end is final
 
 
-def _close(r: Run, size: float = 620.0, cx: float = W / 2, cy: float = H / 2):
-    """A box bigger than app.size_threshold of the image width: close by size at once."""
-    return r.feed([box(size, cx, cy)])[0]
+def _ramp(size: float, start: float = 40.0) -> list[float]:
+    """Box sizes that double each frame from ``start`` up to ``size``: as fast as a box may grow and still be
+    the same gate come nearer (CloseDetector.MAX_STEP); a bigger jump is another object."""
+    sizes = [start]
+    while sizes[-1] < size:
+        sizes.append(min(size, 2.0 * sizes[-1]))
+    return sizes[1:]
+
+
+def _close(r: Run, size: float = 620.0, cx: float = W / 2, cy: float = H / 2, q=None):
+    """Boxes growing to more than app.size_threshold of the image width: the decision that ends ENGAGE."""
+    d = None
+    for s in _ramp(size):
+        d = r.feed([box(s, cx, cy)], **({} if q is None else {"q": q}))[0]
+        if d.phase is not Phase.ENGAGE:
+            break
+    return d
 
 
 def test_close_starts_a_straight_level_pass_on_the_last_los():
-    r = engaged()
+    r = engaged("app.close_trigger=size")  # the box-size trigger (the ramp would trip time-to-contact first)
     # A gate off to the right and below: PN banks; the pass must not hold that bank.
     ds = r.feed([box(60.0, cx=W / 2 + 120 + 4 * i, cy=H / 2 + 60) for i in range(25)])
     assert max(abs(d.setpoint.roll_deg) for d in ds) > 5.0
@@ -265,7 +279,7 @@ def test_yawed_vehicle_passes_along_its_los():
     yaw90 = quat_wxyz_from_R(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
     r = Run(make())
     r.feed([box()] * (CFG.app.acquire_frames + 10), q=yaw90)
-    d = r.feed([box(620.0)], q=yaw90)[0]
+    d = _close(r, q=yaw90)
     assert d.phase is Phase.PASS
     assert d.setpoint.yaw_deg == pytest.approx(90.0, abs=0.5) and abs(d.setpoint.roll_deg) < 1e-6
     assert (P_NED_ENU @ d.setpoint.R_ned_frd[:, 0])[0] == pytest.approx(1.0, abs=1e-3)  # ENU east

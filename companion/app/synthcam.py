@@ -151,7 +151,12 @@ class SyntheticCamera:
         self.index = 0
         self._next: float | None = None
         self._last_pose_t = -math.inf
-        self._background: np.ndarray | None = None
+        self._panorama: Any | None = None  # world-fixed background (perception.simcamera.Panorama)
+        if self.render == "image":  # built here, not at the first frame: it takes ~0.4 s
+            from perception.render import TRAIN_STYLE
+            from perception.simcamera import Panorama
+
+            self._panorama = Panorama(self.model, np.random.default_rng(cfg.sim.seed), TRAIN_STYLE)
         self.faults = FaultInjector(cfg.app.synthetic.fault, cfg.app.synthetic.fault_after, self.model.width)
         self.closed = False
         self._last: Frame | None = None
@@ -225,22 +230,22 @@ class SyntheticCamera:
 
     def _render(self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray,
                 best: tuple[float, GateMotion, np.ndarray] | None) -> tuple[np.ndarray, BoundingBox | None]:
-        from perception.render import TRAIN_STYLE, Gate, PinholeCamera, make_background, render_gate_frame
+        from perception.render import Gate, PinholeCamera, render_gate_frame
 
         cam = PinholeCamera.from_config(self.cfg.camera)
-        if self._background is None:
-            self._background = make_background(cam.width, cam.height, np.random.default_rng(self.cfg.sim.seed),
-                                               TRAIN_STYLE)
         R_enu_cam = R_enu_flu @ F_FRD_FLU @ self.model.R_body_cam
+        # The background is fixed in the world, as the in-process rendered camera's: its clutter moves in the image
+        # as the vehicle turns. An image-fixed background (before) turned a false detection into a box that stayed
+        # put however the vehicle rotated, a phantom PN chased into the ground (PX4 Table I, x500, stationary gate).
         gate = None if best is None else Gate(best[2], best[1].normal, self.scene.radius if self.scene else 1.0)
         image, truth = render_gate_frame(cam, R_enu_cam, p_enu, gate, style=None, rng=self.rng,
-                                         background=self._background, t=t)
+                                         background=self._panorama.view(R_enu_cam), t=t)
         return self._sensor_noise(image), truth
 
     def _sensor_noise(self, image: np.ndarray) -> np.ndarray:
-        """A real sensor's frames are never identical, even of a static view; the clean render is (the
-        background does not move with the attitude). Without noise an empty view would look like a frozen
-        camera to perception/plausibility.py. A few seeded noise frames in turn: cheap, deterministic."""
+        """A real sensor's frames are never identical, even of a static view; a clean render of a hovering
+        vehicle's view is. Without noise an empty view would look like a frozen camera to
+        perception/plausibility.py. A few seeded noise frames in turn: cheap, deterministic."""
         import cv2
 
         if self._noise is None or self._noise[0].shape != image.shape:

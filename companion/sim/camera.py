@@ -17,19 +17,22 @@ front of an undistorted camera, else from 32 rim samples (cv2.projectPoints with
 No box when the gate centre is behind the camera or outside the image (the FOV check; with
 ``clip``: when no part of the rim is in the image), when
 the box is smaller than ``min_box`` pixels, or when the frame is dropped. Pixel noise is
-added to the box centre and size. Latency is the runner's job (it delivers the box of a
-frame captured at t at t + delay).
+added to the box centre and size: white (``pixel_noise``) or, opted in, the detector-like error model of
+companion/sim/boxnoise.py (coloured, size-dependent, wrong targets and misses). Latency is the
+runner's job (it delivers the box of a frame captured at t at t + delay).
 """
 
 from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import Any
 
 import cv2
 import numpy as np
 
 from companion.frames import F_FRD_FLU
+from companion.sim.boxnoise import PROFILES, DetectorNoise
 from perception.los import CameraModel
 from perception.types import BoundingBox
 
@@ -100,6 +103,11 @@ class GeometricCamera:
         # camera (OpenCV) -> body FLU, fixed: body FRD -> FLU is F_FRD_FLU (self-inverse).
         self._R_flu_cam = F_FRD_FLU @ model.R_body_cam
         self._distorted = bool(model.dist.size and np.any(model.dist != 0.0))
+        self.detector_noise: DetectorNoise | None = None  # set: the detector error model replaces pixel_noise
+
+    def use_detector_noise(self, noise: DetectorNoise) -> None:
+        """Opt in to the detector-like box error (``sim.camera.noise_model: detector``) instead of white noise."""
+        self.detector_noise = noise
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (n, 2) of camera-frame points with z > 0."""
@@ -209,6 +217,8 @@ class GeometricCamera:
         if self.drop_prob > 0.0 and self.rng.random() < self.drop_prob:
             return None
         box = self.box_exact(p_enu, R_enu_flu, centre, normal, radius, t)
+        if self.detector_noise is not None:
+            return self.detector_noise.apply(box)
         if box is None or self.pixel_noise <= 0.0:
             return box
         n = self.rng.normal(0.0, self.pixel_noise, 4)
@@ -218,3 +228,8 @@ class GeometricCamera:
         w = max(box.w + n[2], 1.0)
         h = max(box.h + n[3], 1.0)
         return BoundingBox(cx, cy, w, h, 1.0, t)
+
+
+def detector_noise(cfg: Any, rng: np.random.Generator) -> DetectorNoise:
+    """The detector error model of ``cfg.sim.camera.detector_profile`` for the configured image size."""
+    return DetectorNoise(PROFILES[cfg.sim.camera.detector_profile], rng, int(cfg.camera.width), int(cfg.camera.height))

@@ -7,7 +7,7 @@ and drops, the gate motions and the initial conditions.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -76,6 +76,13 @@ class SimCameraConfig(Section):
     """The geometric camera: true pose + gate -> pixel box (intrinsics from the ``camera`` section)."""
 
     pixel_noise: Pixels = Field(1.0, ge=0.0, le=100.0, description="std of box centre/size noise, px")
+    noise_model: Literal["white", "detector"] = Field(
+        "white", description="white: i.i.d. Gaussian pixel_noise; detector: the shipped detector's measured box "
+        "error (size-dependent, coloured, wrong targets, misses; docs/noise.md), pixel_noise unused"
+    )
+    detector_profile: Literal["x500", "sih"] = Field(
+        "x500", description="fitted parameter set of the detector model (companion/sim/boxnoise.py PROFILES)"
+    )
     delay: Seconds = Field(0.0, ge=0.0, le=2.0, description="box of frame t arrives at t + delay")
     drop_prob: Number = Field(0.0, ge=0.0, le=1.0, description="probability a frame gives no box")
     min_box: Pixels = Field(2.0, ge=0.0, le=100.0, description="boxes smaller than this are not detected, px")

@@ -31,7 +31,7 @@ from companion.engagement import Engagement, Phase
 from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
 from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
-from companion.sim.camera import GeometricCamera
+from companion.sim.camera import GeometricCamera, detector_noise
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
 from companion.sim.gates import MOTIONS, MotionKind
 from companion.sim.scenario import Scenario, make_scenario
@@ -239,6 +239,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     # The engagement protocol sees a detector-like box: the ring's extent clipped to the image.
     camera = make_camera(CameraModel.from_config(cfg.camera), sim.camera.pixel_noise,
                          sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box or engaged)
+    if sim.camera.noise_model == "detector" and isinstance(camera, GeometricCamera):
+        camera.use_detector_noise(detector_noise(cfg, rng_cam))
     sensors = Sensors(sim.sensors, rng_sens)
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)

@@ -86,6 +86,28 @@ def test_size_trigger_and_no_trigger_when_receding():
         assert math.isinf(det2.update(i / 30, box(100 - i, i / 30), True).ttc)
 
 
+def test_a_box_that_jumps_in_size_is_not_the_gate_come_nearer():
+    """A 43 px gate, two missed frames, then one 448 px box of clutter (seen in the app): not close, not near."""
+    det = CloseDetector(AppConfig(close_trigger="either", size_threshold=0.95), 640)
+    t = 0.0
+    for i in range(30):
+        t = i / 30
+        det.update(t, box(40 + 0.1 * i, t), True)
+    det.update(t + 1 / 30, None, False)
+    det.update(t + 2 / 30, None, False)
+    e = det.update(t + 3 / 30, box(448, t + 3 / 30), True)
+    assert not e.close
+    assert e.size_frac < 0.1  # the size evidence is still the gate's (~43 px of 640)
+    # A real approach may double its box within the window only slowly: 43 -> 80 px over 0.2 s is accepted.
+    det2 = CloseDetector(AppConfig(close_trigger="size", size_threshold=0.12), 640)
+    det2.update(0.0, box(43, 0.0), True)
+    assert det2.update(0.2, box(80, 0.2), True).close
+    # After a long gap (> 0.25 s) any size is taken again: the window has nothing to compare with.
+    det3 = CloseDetector(AppConfig(close_trigger="size", size_threshold=0.6), 640)
+    det3.update(0.0, box(43, 0.0), True)
+    assert det3.update(0.5, box(448, 0.5), True).close
+
+
 def test_ttc_noise_does_not_trigger_far_away():
     rng = np.random.default_rng(3)
     det = CloseDetector(AppConfig(close_trigger="ttc", ttc_threshold=0.35), 640)
