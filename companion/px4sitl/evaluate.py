@@ -42,6 +42,10 @@ from companion.px4sitl.truth import EARTH_RADIUS, SihTruth
 HOVER_ALTITUDE = 12.0  # m above the ground: the start points
 HALF_TRACK = 15.0  # m: start points at -15 m / +15 m north of the origin, facing each other
 SETTLE_TIMEOUT = 60.0  # s for PX4 to reach and settle at a start point
+# PX4 flies to the start point in its EKF's frame, which sits up to 2-3 m off SIH's truth after a fresh start
+# (measured at rest): a 1.5 m bound failed the first start point of a fresh PX4 now and then (a harness error and
+# a restart). The app anchors its virtual gates at its first frame, so the start needs no more precision.
+SETTLE_RADIUS = 3.0  # m, truth to the start point
 SUPPORTED = ("table1",)
 
 
@@ -185,6 +189,7 @@ class _Vehicle:
             send()
             truth = self.open_truth()
             since = None
+            last: tuple[np.ndarray, float, float] | None = None
             deadline = t0 + SETTLE_TIMEOUT
             resent = t0
             while time.monotonic() < deadline:
@@ -194,7 +199,8 @@ class _Vehicle:
                     continue
                 yaw_now = math.degrees(math.atan2(2 * (s.q_wxyz[0] * s.q_wxyz[3] + s.q_wxyz[1] * s.q_wxyz[2]),
                                                   1 - 2 * (s.q_wxyz[2] ** 2 + s.q_wxyz[3] ** 2)))
-                ok = (np.linalg.norm(s.position_ned - p) < 1.5 and np.linalg.norm(s.velocity_ned) < 0.3
+                last = (s.position_ned, float(np.linalg.norm(s.velocity_ned)), yaw_now)
+                ok = (np.linalg.norm(s.position_ned - p) < SETTLE_RADIUS and last[1] < 0.3
                       and abs((yaw_now - yaw + 180.0) % 360.0 - 180.0) < 4.0)
                 since = (since or time.monotonic()) if ok else None
                 if since is not None and time.monotonic() - since > 1.5:
@@ -203,8 +209,10 @@ class _Vehicle:
                     send()
                     resent = time.monotonic()
             else:
-                raise RuntimeError(f"PX4 did not settle at the start point {p.round(1).tolist()} within "
-                                   f"{SETTLE_TIMEOUT:.0f} s")
+                where = ("no truth sample" if last is None else
+                         f"truth at {np.round(last[0], 1).tolist()}, speed {last[1]:.2f} m/s, yaw {last[2]:.0f} deg")
+                raise RuntimeError(f"PX4 did not settle at the start point {p.round(1).tolist()} (yaw {yaw:.0f} deg) "
+                                   f"within {SETTLE_TIMEOUT:.0f} s: {where}")
         finally:
             m.close()
         self.leg += 1
