@@ -127,16 +127,18 @@ def test_huge_config_file_is_refused_unread(tmp_path: Path) -> None:
 
 
 def test_cross_section_error_is_short_and_blames_the_set_value(tmp_path: Path) -> None:
-    """The camera tilt is valid alone and gamma_bar is valid alone: the error names the --set that broke it."""
+    """The camera tilt is valid alone and gamma_bar is valid alone: the error names the --set that broke it.
+
+    A camera turned sideways (yaw) eats into gamma_bar (a pure pitch is an uptilt the solver keeps exactly)."""
     p = tmp_path / "ok.yaml"
-    p.write_text("camera:\n  mount:\n    pitch: 15 deg\n")  # valid with the default gamma_bar 21 deg
+    p.write_text("camera:\n  mount:\n    yaw: 15 deg\n")  # valid with the default gamma_bar 21 deg
     r, _ = run_cli(["fly", "--config", str(p), "--set", "guidance.gamma_bar=10 deg"], tmp_path)
     line = one_line(r)
     assert r.returncode == 2
     assert line.startswith("companion: config error: --set guidance.gamma_bar=10 deg: camera.mount tilts"), line
     assert "default.yaml" not in line and "ok.yaml" not in line
     # A file that breaks the defaults alone is the one named.
-    p.write_text("camera:\n  mount:\n    pitch: 25 deg\n")
+    p.write_text("camera:\n  mount:\n    yaw: 25 deg\n")
     r, _ = run_cli(["fly", "--config", str(p)], tmp_path)
     line = one_line(r)
     assert r.returncode == 2 and line.startswith(f"companion: config error: {p}: camera.mount tilts"), line
