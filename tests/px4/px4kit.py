@@ -55,6 +55,10 @@ class Px4Bench:
         self.px4.wait_preflight(120.0)
         return self.px4
 
+    def fresh(self) -> PX4Sitl:
+        """A freshly started PX4 (new working folder), on the ground, pre-flight checks passing."""
+        return self._start()
+
     def ready(self) -> PX4Sitl:
         """PX4 on the ground, disarmed, in Hold, pre-flight checks passing."""
         if self.px4 is None or not self.px4.running:

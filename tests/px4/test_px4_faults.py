@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from px4kit import finish, flight_folder, start_app, states, wait_state
+from px4kit import Px4Bench, finish, flight_folder, start_app, states, wait_state
 
 from companion.app.states import Reason
 from companion.flightlog import read_flight, read_table
@@ -84,23 +84,35 @@ def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: 
     assert h1 < 10.0
 
 
-def test_start_while_airborne_is_refused(px4: PX4Sitl, log_dir: Path) -> None:
+def _take_off_by_px4(px4: PX4Sitl, lift_off_s: float = 25.0) -> bool:
+    """PX4's own take-off to 4 m and Hold there; False if the vehicle never left the ground.
+
+    PX4's Takeoff ends by itself on its *estimated* altitude (the EKF's height is off by 1-3 m): past 3 m of true
+    height Hold is commanded here rather than waiting for it. Seen twice in CI after several flights on one SIH
+    instance: PX4 "Takeoff detected", thrust setpoint at 100 % for 90 s, motors at 3-54 % (the mixer spending
+    them on a roll the vehicle resting ~3 deg tilted on SIH's ground never makes), true height 0.0 m.
+    """
     px4.param_set("MIS_TAKEOFF_ALT", 4.0)
     px4.client("commander", "arm")
     px4.client("commander", "takeoff")
-    # Airborne and in Hold by PX4's own doing. PX4's Takeoff ends by itself on its *estimated* altitude (the
-    # EKF's height is off by 1-3 m) and once (CI, loaded machine) was still in Takeoff after 40 s: past 3 m of
-    # true height the test commands Hold itself rather than depend on when Takeoff ends.
-    deadline = time.monotonic() + 90.0
+    t0 = time.monotonic()
     while True:
         st, h = px4.status(), _height(px4)
         if st.nav_mode == "Hold" and h > 3.0:
-            break
+            return True
         if st.nav_mode == "Takeoff" and h > 3.0:
             px4.client("commander", "mode", "auto:loiter", check=False)
-        assert time.monotonic() < deadline, (f"PX4 not airborne in Hold 90 s after take-off: {st}, true height "
-                                             f"{h:.1f} m; console tail: {px4.console_tail()}")
+        if h < 0.5 and time.monotonic() - t0 > lift_off_s:
+            return False
+        assert time.monotonic() - t0 < 90.0, (f"PX4 not airborne in Hold 90 s after take-off: {st}, true height "
+                                              f"{h:.1f} m; console tail: {px4.console_tail()}")
         time.sleep(0.5)
+
+
+def test_start_while_airborne_is_refused(px4: PX4Sitl, px4_bench: Px4Bench, log_dir: Path) -> None:
+    if not _take_off_by_px4(px4):  # the SIH ground deadlock above: the set-up, not the app, failed; once more
+        px4 = px4_bench.fresh()
+        assert _take_off_by_px4(px4), f"a fresh PX4 did not lift off either: {px4.console_tail()}"
     h0 = _height(px4)
     rc, out = finish(start_app(px4, log_dir), timeout=90)
     path = states(flight_folder(log_dir))
