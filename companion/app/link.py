@@ -735,24 +735,18 @@ class VehicleLink:
         self._emit("healthy")
 
     async def read_param(self, name: str, timeout: float | None = None) -> float:
-        from mavsdk.asyncio.plugins.param import ParamError
-
-        self.check_link()
-        try:
-            return float(await self._call(f"read parameter {name}",
-                                          lambda: self._param.get_param_float(name), timeout))
-        except ParamError as e:
-            if e.result.name == "TIMEOUT":
-                raise CommandTimeout(f"read parameter {name}: no answer from the autopilot") from None
-            raise CommandDenied(f"read parameter {name}: {e.result.name}") from None
+        return float(await self._read_param(name, "get_param_float", timeout))
 
     async def read_param_int(self, name: str, timeout: float | None = None) -> int:
+        return int(await self._read_param(name, "get_param_int", timeout))
+
+    async def _read_param(self, name: str, getter: str, timeout: float | None) -> Any:
+        """One parameter through mavsdk's param plugin (``getter``: its method); its errors as our command errors."""
         from mavsdk.asyncio.plugins.param import ParamError
 
         self.check_link()
         try:
-            return int(await self._call(f"read parameter {name}",
-                                        lambda: self._param.get_param_int(name), timeout))
+            return await self._call(f"read parameter {name}", lambda: getattr(self._param, getter)(name), timeout)
         except ParamError as e:
             if e.result.name == "TIMEOUT":
                 raise CommandTimeout(f"read parameter {name}: no answer from the autopilot") from None
