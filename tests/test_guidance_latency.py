@@ -86,18 +86,18 @@ def test_prediction_is_straight_line_relative_motion(d: float, d_dot: float, lam
     """Without our own commands the prediction is the gate flying straight relative to us: LOS at
     ``r + v tau`` and LOS rate ``|r' x v| / |r'|^2`` (angular momentum, an independent formula)."""
     ctrl = _ctrl("guidance.delay_prediction=true", "guidance.delay_compensation=false")
-    l = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-    n = _unit(np.cross(l, [0.3, -0.5, 0.8]))
+    los = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    n = _unit(np.cross(los, [0.3, -0.5, 0.8]))
     t = 5.0
     _prime(ctrl, d, d_dot, t, tau)
-    l2, lam2, n2 = ctrl._predict_state(t, l, lam, n)
-    v = d_dot * l + d * lam * n
-    r1 = d * l + v * tau
+    l2, lam2, n2 = ctrl._predict_state(t, los, lam, n)
+    v = d_dot * los + d * lam * n
+    r1 = d * los + v * tau
     if tau == 0.0:
-        assert l2 is l and lam2 == lam
+        assert l2 is los and lam2 == lam
         return
-    if float(r1 @ l) <= 0.0:
-        assert (l2 is l) and lam2 == lam  # predicted past the gate: the frame is used as it is
+    if float(r1 @ los) <= 0.0:
+        assert (l2 is los) and lam2 == lam  # predicted past the gate: the frame is used as it is
         return
     assert l2 == pytest.approx(_unit(r1), abs=1e-9)
     d1 = max(float(np.linalg.norm(r1)), ctrl.p.gate_radius, 0.5)
@@ -126,10 +126,10 @@ def test_own_motion_since_capture_against_an_integral(tau_lag: float, response: 
         ctrl._note_command(a)
     t_cap = 0.45
     d, d_dot, lam = 20.0, -12.0, 0.1
-    l = np.array([1.0, 0.0, 0.0])
+    los = np.array([1.0, 0.0, 0.0])
     n = np.array([0.0, 1.0, 0.0])
     _prime(ctrl, d, d_dot, t_cap, age)
-    l2, lam2, _ = ctrl._predict_state(t_cap, l, lam, n)
+    l2, lam2, _ = ctrl._predict_state(t_cap, los, lam, n)
     # Independent: Euler integration of tau da_eff/dt = a_cmd(t - response) - a_eff over [t_cap, t_cap + age].
     h = 1e-4
     eff = np.zeros(3)
@@ -144,8 +144,8 @@ def test_own_motion_since_capture_against_an_integral(tau_lag: float, response: 
             dv += eff * h
         eff = eff + (cmd - eff) * (h / tau_lag)
         s += h
-    v = d_dot * l + d * lam * n - dv
-    r1 = d * l + (d_dot * l + d * lam * n) * age - dp
+    v = d_dot * los + d * lam * n - dv
+    r1 = d * los + (d_dot * los + d * lam * n) * age - dp
     assert l2 == pytest.approx(_unit(r1), abs=2e-4)
     d1 = max(float(np.linalg.norm(r1)), 1.0)
     expect = float(np.linalg.norm(np.cross(r1, v))) / (float(np.linalg.norm(r1)) * d1)
