@@ -77,6 +77,11 @@ class PerceptionConfig(Section):
         description="s after a lost track's last measurement during which a new acquisition must be consistent "
         "with it (size and position) or wait; 0 = no memory",
     )
+    memory_growth_rate: Number = Field(
+        1.5, gt=0.0, le=100.0,
+        description="1/s, box size change rate a lost target may show while unseen (a gate 8 m away at 12 m/s: "
+        "1.5; max_growth_rate's 4 /s holds only just before a pass)",
+    )
     memory_reach_rate: Number = Field(
         0.3, ge=0.0, le=10.0,
         description="image diagonals per second the lost target's centre may have moved while unseen (on top of "

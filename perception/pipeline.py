@@ -25,9 +25,11 @@ Policy (one state machine, both tracker kinds):
   false boxes score low (on the dev set 3 % of the boxes at >= 0.5 are false) while waiting for
   ``confirm_frames`` after every miss left the gate unboxed; weaker detections still need confirming.
 * memory of a lost track (``memory_time``): for that long after the lost track's last measurement, a new
-  acquisition must be consistent with it (size change an approach explains over the elapsed time, centre
-  within ``max_jump`` plus ``memory_reach_rate`` per second of it); anything else waits until the memory
-  ends (and still needs ``confirm_frames``). ``reset`` (a gate was passed) forgets it: the next gate is new.
+  acquisition must be consistent with it (size change at most ``memory_growth_rate`` over the elapsed time,
+  centre within ``max_jump`` plus ``memory_reach_rate`` per second of it); anything else waits until the
+  memory ends (and still needs ``confirm_frames``). ``reset`` (a gate was passed) forgets it: the next gate
+  is new. ``memory_growth_rate`` is below ``max_growth_rate`` because ``max_growth_rate`` (speed / distance)
+  is reached only in the last moments before a pass, not over a second out of sight of a far gate.
 * a new target (an acquisition not continuing the remembered track, or a switch) must be wholly in view:
   a box cut by the image border is clutter at the edge or a gate whose centre the box does not show.
 * a switch to a challenger must also be size-consistent with the track (over the time since the track's
@@ -245,7 +247,7 @@ class Pipeline:
             elapsed = t - m.t
             reach = (self.max_jump_px + 0.5 * math.hypot(m.box.w, m.box.h)
                      + self.pc.memory_reach_rate * self.diag_px * elapsed)
-            return (consistent(m.box, d, elapsed, self.pc.max_growth_rate)
+            return (consistent(m.box, d, elapsed, self.pc.memory_growth_rate)
                     and math.hypot(d.cx - m.box.cx, d.cy - m.box.cy) <= reach)
         return not touches_border(d, self.width, self.height)
 
