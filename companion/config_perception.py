@@ -77,6 +77,11 @@ class PerceptionConfig(Section):
         description="s after a lost track's last measurement during which a new acquisition must be consistent "
         "with it (size and position) or wait; 0 = no memory",
     )
+    memory_min_score: Number = Field(
+        0.5, ge=0.0, le=1.0,
+        description="track score at its last measurement a lost track needs to be remembered (a weak track may "
+        "have been on the wrong thing: the gate must not wait for it); 1 = never remember",
+    )
     memory_growth_rate: Number = Field(
         1.5, gt=0.0, le=100.0,
         description="1/s, box size change rate a lost target may show while unseen (a gate 8 m away at 12 m/s: "

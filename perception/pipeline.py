@@ -24,7 +24,8 @@ Policy (one state machine, both tracker kinds):
 * a confident detection (``acquire_confidence``) acquires on its own frame: on real frames the detector's
   false boxes score low (on the dev set 3 % of the boxes at >= 0.5 are false) while waiting for
   ``confirm_frames`` after every miss left the gate unboxed; weaker detections still need confirming.
-* memory of a lost track (``memory_time``): for that long after the lost track's last measurement, a new
+* memory of a lost track (``memory_time``; only a track whose score was at least ``memory_min_score`` at its
+  last measurement: a weak track may have been the wrong thing): for that long after its last measurement, a new
   acquisition must be consistent with it (size change at most ``memory_growth_rate`` over the elapsed time,
   centre within ``max_jump`` plus ``memory_reach_rate`` per second of it); anything else waits until the
   memory ends (and still needs ``confirm_frames``). ``reset`` (a gate was passed) forgets it: the next gate
@@ -157,6 +158,7 @@ class Pipeline:
         self.challenger: _Candidate | None = None
         self.memory: _Memory | None = None
         self.last_box: BoundingBox | None = None
+        self.held_score = 0.0  # the track's score at its last measurement
         if self.tracker is not None:
             self.tracker.active = False
 
@@ -225,6 +227,7 @@ class Pipeline:
         self.last_conf = best.confidence
         self.last_box = best
         self.score = TrackScore(best.confidence)
+        self.held_score = best.confidence
         self.challenger = None
         self.memory = None
         self.candidate, self.candidate_count = None, 0
@@ -290,6 +293,7 @@ class Pipeline:
         if meas is not None:
             box = self.kf.correct(meas)
             self.last_box = box
+            self.held_score = self.score.value
             self.t_measured = t
             self.last_conf = meas.confidence
             self.stats.measured += 1
@@ -302,7 +306,9 @@ class Pipeline:
         if since > self.pc.coast_time or self.pc.coast_time <= 0.0:
             self.kf = None
             self.stats.losses += 1
-            if self.last_box is not None and self.t_measured is not None:
+            held = self.last_box is not None and self.t_measured is not None
+            if held and self.held_score >= self.pc.memory_min_score:
+                assert self.last_box is not None and self.t_measured is not None
                 self.memory = _Memory(self.last_box, self.t_measured)
             if self.tracker is not None:
                 self.tracker.active = False
@@ -366,6 +372,7 @@ class Pipeline:
         self.t_measured = t
         self.last_conf = ch.box.confidence
         self.last_box = ch.box
+        self.held_score = ch.score.value
         self.stats.switches += 1
         self.stats.measured += 1
         if self.tracker is not None:

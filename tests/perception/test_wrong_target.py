@@ -112,3 +112,16 @@ def test_a_weak_wrong_track_still_gives_way_to_a_bigger_better_candidate() -> No
     p, outs = _run(script, coast_time=2.0, memory_time=0.0)
     assert p.stats.switches == 1
     assert all(o is not None and abs(o.cx - 400.0) < 10 for o in outs[-10:])
+
+
+def test_a_weak_lost_track_does_not_hold_the_gate_back() -> None:
+    # a weak track (0.4: maybe the wrong thing) is lost; the gate then appears elsewhere, 3x the size, confident
+    weak = [[BoundingBox(100.0, 100.0, 40.0, 40.0, 0.4)] for _ in range(6)] + [[] for _ in range(10)]
+    script = weak + [[BoundingBox(450.0, 300.0, 120.0, 120.0, 0.8)] for _ in range(3)]
+    p, outs = _run(script)
+    assert p.stats.losses == 1 and p.memory is None
+    assert outs[16] is not None and outs[16].cx == 450.0  # acquired on its own frame (acquire_confidence)
+    # the same lost track at 0.8 is remembered: the inconsistent box waits
+    strong = [[BoundingBox(100.0, 100.0, 40.0, 40.0, 0.8)] for _ in range(6)] + [[] for _ in range(10)]
+    p, outs = _run(strong + script[16:])
+    assert all(o is None for o in outs[16:]) and p.stats.held_back == 3
