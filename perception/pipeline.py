@@ -31,10 +31,13 @@ Policy (one state machine, both tracker kinds):
   memory ends (and still needs ``confirm_frames``). ``reset`` (a gate was passed) forgets it: the next gate
   is new. ``memory_growth_rate`` is below ``max_growth_rate`` because ``max_growth_rate`` (speed / distance)
   is reached only in the last moments before a pass, not over a second out of sight of a far gate.
-* a new target (an acquisition not continuing the remembered track, or a switch) must be wholly in view:
-  a box cut by the image border is clutter at the edge or a gate whose centre the box does not show.
+* an acquisition or a switch needs a box wholly in view: a box cut by the image border is clutter at the edge
+  or a gate whose centre the box does not show; a near gate cut by the border is followed only by a track
+  that already holds it (on the dev sequences, re-acquiring border boxes consistent with the lost track
+  put the track on a tall border box instead of the gate).
 * a switch to a challenger must also be size-consistent with the track (over the time since the track's
-  last measurement) unless the track is weak (score below ``min_track_score``); a challenger that may not
+  last measurement); a track gone weak (score below ``min_track_score``) is treated like a lost one (the
+  memory rules if it was sure when last measured, else anything may take it); a challenger that may not
   switch does not make the target uncertain either. Why: on real PX4 a 45 px gate track gave way to a
   198 px panorama object 370 px away after the 2 "uncertain" frames of its build-up, and the engagement
   read the jump as the gate coming near.
@@ -243,16 +246,20 @@ class Pipeline:
         return min(self.max_jump_px, self.pc.max_jump_rate * self.diag_px * max(dt, 0.0))
 
     def _may_acquire(self, d: BoundingBox, t: float) -> bool:
-        """May ``d`` start a track now? Within the memory time only as the lost track's continuation (size
-        and position reachable in the elapsed time); otherwise only a box wholly in view."""
+        """May ``d`` start a track now? Only a box wholly in view and, within the memory time, only as the lost
+        track's continuation (size and position reachable in the elapsed time)."""
+        if touches_border(d, self.width, self.height):
+            return False
         m = self.memory
-        if m is not None and t - m.t <= self.pc.memory_time:
-            elapsed = t - m.t
-            reach = (self.max_jump_px + 0.5 * math.hypot(m.box.w, m.box.h)
-                     + self.pc.memory_reach_rate * self.diag_px * elapsed)
-            return (consistent(m.box, d, elapsed, self.pc.memory_growth_rate)
-                    and math.hypot(d.cx - m.box.cx, d.cy - m.box.cy) <= reach)
-        return not touches_border(d, self.width, self.height)
+        return m is None or self._reachable(m.box, t - m.t, d)
+
+    def _reachable(self, last: BoundingBox, elapsed: float, d: BoundingBox) -> bool:
+        """Could the target last seen as ``last`` look like ``d`` after ``elapsed`` s unseen (memory rules)?"""
+        if elapsed > self.pc.memory_time:
+            return True
+        reach = self.max_jump_px + 0.5 * math.hypot(last.w, last.h) + self.pc.memory_reach_rate * self.diag_px * elapsed
+        return (consistent(last, d, elapsed, self.pc.memory_growth_rate)
+                and math.hypot(d.cx - last.cx, d.cy - last.cy) <= reach)
 
     def _track(self, frame: np.ndarray, t: float, dt: float) -> BoundingBox | None:
         assert self.kf is not None
@@ -337,14 +344,17 @@ class Pipeline:
         return ch.score.value > self.score.value + self._MARGIN
 
     def _may_switch(self, ch: _Candidate, pred: BoundingBox, t: float) -> bool:
-        """A challenger may take the track only wholly in view and, unless the track is weak, at a size the track
-        could have grown (or shrunk) to since its last measurement."""
+        """A challenger may take the track only wholly in view and at a size the track could have grown (or
+        shrunk) to since its last measurement; a track gone weak through misses is treated like a lost one (the
+        memory rules, if it was sure when last measured)."""
         assert self.score is not None
         if touches_border(ch.box, self.width, self.height):
             return False
-        if self.score.value < self.pc.min_track_score:
-            return True
         since = t - (self.t_measured if self.t_measured is not None else t)
+        if self.score.value < self.pc.min_track_score:
+            if self.last_box is None or self.held_score < self.pc.memory_min_score:
+                return True
+            return self._reachable(self.last_box, since, ch.box)
         return consistent(pred, ch.box, since, self.pc.max_growth_rate)
 
     def _follow_challenger(self, others: list[BoundingBox], dt: float) -> None:
