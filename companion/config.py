@@ -158,13 +158,18 @@ class GuidanceConfig(Section):
         "caller gives it) cancelled in the PN demand; 0 = the paper (drag assumed along the LOS)"
     )
     delay_compensation: bool = Field(
-        False, description="bring a late frame's LOS rate forward by the velocity our own acceleration added since "
+        True, description="bring a late frame's LOS rate forward by the velocity our own acceleration added since "
         "its capture (a Smith predictor; needs the caller's time now and gate_radius > 0; no effect on a frame with "
-        "no age). Off: it lifts the x500's latency results but lowers the SIH profile's (docs/guidance.md)"
+        "no age); with delay_prediction the own-velocity part of the prediction (docs/guidance.md, Latency session)"
     )
     delay_compensation_lag: Seconds = Field(
-        0.7, gt=0.0, le=5.0, description="time constant of the modelled response of our acceleration to its command, "
-        "s (latency suite, x500 and racer, 360 runs: 0.7 s best; 0.2-0.4 s over-compensate)"
+        0.2, gt=0.0, le=5.0, description="time constant of the modelled response of our acceleration to its command, "
+        "s, after the pure delay airframe.response_time (docs/guidance.md \"Latency session\")"
+    )
+    delay_prediction: bool = Field(
+        True, description="bring a late frame's LOS and LOS rate forward through its age with the relative motion "
+        "the image shows (range from gate_radius, range rate, LOS rate): the LOS rate of an unaccelerated gate grows "
+        "as 1/range^2 while the frame was on its way; with delay_compensation also our own velocity change"
     )
     keep_ring_in_view: bool = Field(
         False, description="shrink the FOV bound as the ring grows so its rim stays in the image (a detector's box "
