@@ -59,6 +59,10 @@ class AirframeConfig(Section):
     response_time: Seconds = Field(
         0.14, ge=0.0, le=2.0, description="how long the attitude takes to follow a setpoint (PX4 SIH quad ~0.22 s)"
     )
+    drag_rate: Number = Field(
+        0.1, ge=0.0, le=10.0, description="how fast drag takes back a velocity change, 1/s (linear drag / mass; "
+        "quadratic drag c v^2: c v / mass at cruise; PX4's SIH quad: SIH_KDV 1 N/(m/s) on 1 kg = 1/s)"
+    )
 
     @property
     def f_max(self) -> float:

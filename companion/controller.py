@@ -17,6 +17,7 @@ configured gate radius, filtered with the accelerometer when it is given.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
@@ -74,6 +75,7 @@ class ControllerParams:
     delay_compensation: bool = False
     own_lag: float = 0.2
     own_delay: float = 0.0  # s, pure delay before a command acts (airframe.response_time)
+    own_drag_rate: float = 0.0  # 1/s, drag taking back the velocity we add (airframe.drag_rate)
     # Delay prediction: the relative state (range, range rate, LOS, LOS rate) propagated through the frame's age
     # (constant relative velocity, plus our own velocity change when delay_compensation is on).
     delay_prediction: bool = False
@@ -153,6 +155,7 @@ class PNController:
             gate_radius=cfg.guidance.gate_radius,
             delay_compensation=cfg.guidance.delay_compensation,
             own_lag=cfg.guidance.delay_compensation_lag, own_delay=cfg.airframe.response_time,
+            own_drag_rate=cfg.airframe.drag_rate,
             delay_prediction=cfg.guidance.delay_prediction,
             los_kalman=los_kalman_params(cfg), kalman_px=cfg.los_filter.kalman_px,
             kalman_px_rel=cfg.los_filter.kalman_px_rel, kalman_accel_width=cfg.los_filter.kalman_accel_width,
@@ -181,6 +184,7 @@ class PNController:
         self._latency = 0.0  # age of the last frame when it reached us, s
         self._t_now: float | None = None  # the caller's time now (frame arrival), when given
         self._own: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t issued, commanded accel, modelled accel)
+        self._own_t: list[float] = []  # the times of _own, for bisection
         self._drag: np.ndarray | None = None  # filtered aerodynamic acceleration (ENU), from the accelerometer
         self._t_drag: float | None = None
         if self._closing is not None:
@@ -302,9 +306,11 @@ class PNController:
             t0, a0, e0 = prev
             eff = a0 + (e0 - a0) * math.exp(-(t - t0) / tau) if tau > 0.0 else a0.copy()
         self._own.append((t, np.asarray(a, dtype=float).copy(), eff))
+        self._own_t.append(t)
         horizon = t - 2.0  # older commands never fall in a frame's window
         while len(self._own) > 2 and self._own[1][0] < horizon:
             self._own.pop(0)
+            self._own_t.pop(0)
 
     def _own_dv(self, t0: float, t1: float) -> np.ndarray:
         """The velocity our own (modelled) acceleration added between t0 and t1: commands held until the next one,
@@ -337,10 +343,47 @@ class PNController:
         lp = float(np.linalg.norm(w))
         return lp, (w / lp if lp > 0.0 else np.zeros(3))
 
-    def _own_dp(self, t0: float, t1: float) -> np.ndarray:
-        """The displacement our own (modelled) velocity change since t0 added by t1 (Simpson's rule on _own_dv)."""
-        tm = 0.5 * (t0 + t1)
-        return (t1 - t0) / 6.0 * (4.0 * self._own_dv(t0, tm) + self._own_dv(t0, t1))
+    def _own_motion(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """The velocity and displacement our own (modelled) acceleration added between t0 and t1 (times of
+        command: the caller shifts them by own_delay), with drag taking the added velocity back at
+        ``own_drag_rate`` (1/s): ``dv' = a_eff - k dv``, exact for the piecewise first-order ``a_eff`` of
+        :meth:`_own_dv`."""
+        k, tau = self.p.own_drag_rate, self.p.own_lag
+        vx = vy = vz = px = py = pz = 0.0
+        hist = self._own
+        first = max(0, bisect.bisect_right(self._own_t, t0) - 1)  # the command in effect at t0
+        for i in range(first, len(hist)):
+            ti, ai, ei = hist[i]
+            if ti >= t1:
+                break
+            tn = hist[i + 1][0] if i + 1 < len(hist) else t1
+            s0, s1 = max(t0, ti), min(t1, tn)
+            if s1 <= s0:
+                continue
+            dt = s1 - s0
+            e_k = math.exp(-k * dt)
+            f1 = -math.expm1(-k * dt) / k if k * dt > 1e-12 else dt  # int_0^dt e^{-k u} du
+            f2 = (dt - f1) / k if k * dt > 1e-4 else dt * dt * (0.5 - k * dt / 6.0)  # int_0^dt f1(u) du
+            g = h = 0.0  # the lag's transient: int of e^{-u/tau} through the drag, for velocity and displacement
+            if tau > 0.0:
+                e_t = math.exp(-dt / tau)
+                m = k - 1.0 / tau
+                if abs(m) > 1e-6:
+                    g = (e_t - e_k) / m
+                    h = (tau * (1.0 - e_t) - f1) / m
+                else:
+                    g = dt * e_k
+                    h = (1.0 - e_k * (1.0 + k * dt)) / (k * k)
+                c = math.exp(-(s0 - ti) / tau)
+            else:
+                c = 0.0
+            (ax, ay, az), (ex, ey, ez) = ai.tolist(), ei.tolist()
+            cx, cy, cz = (ex - ax) * c, (ey - ay) * c, (ez - az) * c
+            px += vx * f1 + ax * f2 + cx * h
+            py += vy * f1 + ay * f2 + cy * h
+            pz += vz * f1 + az * f2 + cz * h
+            vx, vy, vz = vx * e_k + ax * f1 + cx * g, vy * e_k + ay * f1 + cy * g, vz * e_k + az * f1 + cz * g
+        return np.array([vx, vy, vz]), np.array([px, py, pz])
 
     def _predict_state(self, t: float, l_f: np.ndarray, lam: float,
                        n: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -362,8 +405,9 @@ class PNController:
         r = d * l_f + v * tau
         if self.p.delay_compensation and self._own:
             t0, t1 = t - self.p.own_delay, t_now - self.p.own_delay  # a command acts own_delay after it is given
-            r = r - self._own_dp(t0, t1)
-            v = v - self._own_dv(t0, t1)
+            dv, dp = self._own_motion(t0, t1)
+            r = r - dp
+            v = v - dv
         d2 = float(np.linalg.norm(r))
         if not (d2 > 1e-6) or float(r @ l_f) <= 0.0:
             return l_f, lam, n  # predicted past the gate: the frame says nothing about now
