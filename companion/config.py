@@ -59,6 +59,10 @@ class AirframeConfig(Section):
     response_time: Seconds = Field(
         0.14, ge=0.0, le=2.0, description="how long the attitude takes to follow a setpoint (PX4 SIH quad ~0.22 s)"
     )
+    drag_rate: Number = Field(
+        0.1, ge=0.0, le=10.0, description="how fast drag takes back a velocity change, 1/s (linear drag / mass; "
+        "quadratic drag c v^2: c v / mass at cruise; PX4's SIH quad: SIH_KDV 1 N/(m/s) on 1 kg = 1/s)"
+    )
 
     @property
     def f_max(self) -> float:
@@ -158,13 +162,18 @@ class GuidanceConfig(Section):
         "caller gives it) cancelled in the PN demand; 0 = the paper (drag assumed along the LOS)"
     )
     delay_compensation: bool = Field(
-        False, description="bring a late frame's LOS rate forward by the velocity our own acceleration added since "
+        True, description="bring a late frame's LOS rate forward by the velocity our own acceleration added since "
         "its capture (a Smith predictor; needs the caller's time now and gate_radius > 0; no effect on a frame with "
-        "no age). Off: it lifts the x500's latency results but lowers the SIH profile's (docs/guidance.md)"
+        "no age); with delay_prediction the own-velocity part of the prediction (docs/guidance.md, Latency session)"
     )
     delay_compensation_lag: Seconds = Field(
-        0.7, gt=0.0, le=5.0, description="time constant of the modelled response of our acceleration to its command, "
-        "s (latency suite, x500 and racer, 360 runs: 0.7 s best; 0.2-0.4 s over-compensate)"
+        0.2, gt=0.0, le=5.0, description="time constant of the modelled response of our acceleration to its command, "
+        "s, after the pure delay airframe.response_time (docs/guidance.md \"Latency session\")"
+    )
+    delay_prediction: bool = Field(
+        True, description="bring a late frame's LOS and LOS rate forward through its age with the relative motion "
+        "the image shows (range from gate_radius, range rate, LOS rate): the LOS rate of an unaccelerated gate grows "
+        "as 1/range^2 while the frame was on its way; with delay_compensation also our own velocity change"
     )
     keep_ring_in_view: bool = Field(
         False, description="shrink the FOV bound as the ring grows so its rim stays in the image (a detector's box "

@@ -17,6 +17,7 @@ configured gate radius, filtered with the accelerometer when it is given.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
@@ -72,7 +73,12 @@ class ControllerParams:
     # the velocity our own commanded acceleration added since the frame was captured (the image shows it only
     # later). own_lag: time constant of the first-order model of how the commanded acceleration is reached.
     delay_compensation: bool = False
-    own_lag: float = 0.7
+    own_lag: float = 0.2
+    own_delay: float = 0.0  # s, pure delay before a command acts (airframe.response_time)
+    own_drag_rate: float = 0.0  # 1/s, drag taking back the velocity we add (airframe.drag_rate)
+    # Delay prediction: the relative state (range, range rate, LOS, LOS rate) propagated through the frame's age
+    # (constant relative velocity, plus our own velocity change when delay_compensation is on).
+    delay_prediction: bool = False
     # LOS estimation by a constant-velocity Kalman filter (los_filter.kind: kalman) instead of the low-pass +
     # differencing: None = the low-pass. Its measurement noise is kalman_px + kalman_px_rel * box size (px).
     los_kalman: LosKalmanParams | None = None
@@ -148,7 +154,9 @@ class PNController:
             gamma_min=math.radians(cfg.guidance.gamma_min),
             gate_radius=cfg.guidance.gate_radius,
             delay_compensation=cfg.guidance.delay_compensation,
-            own_lag=cfg.guidance.delay_compensation_lag,
+            own_lag=cfg.guidance.delay_compensation_lag, own_delay=cfg.airframe.response_time,
+            own_drag_rate=cfg.airframe.drag_rate,
+            delay_prediction=cfg.guidance.delay_prediction,
             los_kalman=los_kalman_params(cfg), kalman_px=cfg.los_filter.kalman_px,
             kalman_px_rel=cfg.los_filter.kalman_px_rel, kalman_accel_width=cfg.los_filter.kalman_accel_width,
         )
@@ -176,6 +184,7 @@ class PNController:
         self._latency = 0.0  # age of the last frame when it reached us, s
         self._t_now: float | None = None  # the caller's time now (frame arrival), when given
         self._own: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t issued, commanded accel, modelled accel)
+        self._own_t: list[float] = []  # the times of _own, for bisection
         self._drag: np.ndarray | None = None  # filtered aerodynamic acceleration (ENU), from the accelerometer
         self._t_drag: float | None = None
         if self._closing is not None:
@@ -297,13 +306,15 @@ class PNController:
             t0, a0, e0 = prev
             eff = a0 + (e0 - a0) * math.exp(-(t - t0) / tau) if tau > 0.0 else a0.copy()
         self._own.append((t, np.asarray(a, dtype=float).copy(), eff))
+        self._own_t.append(t)
         horizon = t - 2.0  # older commands never fall in a frame's window
         while len(self._own) > 2 and self._own[1][0] < horizon:
             self._own.pop(0)
+            self._own_t.pop(0)
 
     def _own_dv(self, t0: float, t1: float) -> np.ndarray:
         """The velocity our own (modelled) acceleration added between t0 and t1: commands held until the next one,
-        each reached with a first-order lag."""
+        each reached with a first-order lag (times of command: the callers shift them by own_delay)."""
         dv = np.zeros(3)
         tau = self.p.own_lag
         hist = self._own
@@ -326,11 +337,85 @@ class PNController:
         t_now = self._t_now
         if d is None or d <= 0.5 or t_now is None or not self._own:
             return lam, n
-        dv = self._own_dv(t, t_now)
+        dv = self._own_dv(t - self.p.own_delay, t_now - self.p.own_delay)  # a command acts own_delay later
         dv = dv - float(dv @ l_f) * l_f
         w = lam * n - dv / d
         lp = float(np.linalg.norm(w))
         return lp, (w / lp if lp > 0.0 else np.zeros(3))
+
+    def _own_motion(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """The velocity and displacement our own (modelled) acceleration added between t0 and t1 (times of
+        command: the caller shifts them by own_delay), with drag taking the added velocity back at
+        ``own_drag_rate`` (1/s): ``dv' = a_eff - k dv``, exact for the piecewise first-order ``a_eff`` of
+        :meth:`_own_dv`."""
+        k, tau = self.p.own_drag_rate, self.p.own_lag
+        vx = vy = vz = px = py = pz = 0.0
+        hist = self._own
+        first = max(0, bisect.bisect_right(self._own_t, t0) - 1)  # the command in effect at t0
+        for i in range(first, len(hist)):
+            ti, ai, ei = hist[i]
+            if ti >= t1:
+                break
+            tn = hist[i + 1][0] if i + 1 < len(hist) else t1
+            s0, s1 = max(t0, ti), min(t1, tn)
+            if s1 <= s0:
+                continue
+            dt = s1 - s0
+            e_k = math.exp(-k * dt)
+            f1 = -math.expm1(-k * dt) / k if k * dt > 1e-12 else dt  # int_0^dt e^{-k u} du
+            f2 = (dt - f1) / k if k * dt > 1e-4 else dt * dt * (0.5 - k * dt / 6.0)  # int_0^dt f1(u) du
+            g = h = 0.0  # the lag's transient: int of e^{-u/tau} through the drag, for velocity and displacement
+            if tau > 0.0:
+                e_t = math.exp(-dt / tau)
+                m = k - 1.0 / tau
+                if abs(m) > 1e-6:
+                    g = (e_t - e_k) / m
+                    h = (tau * (1.0 - e_t) - f1) / m
+                else:
+                    g = dt * e_k
+                    h = (1.0 - e_k * (1.0 + k * dt)) / (k * k)
+                c = math.exp(-(s0 - ti) / tau)
+            else:
+                c = 0.0
+            (ax, ay, az), (ex, ey, ez) = ai.tolist(), ei.tolist()
+            cx, cy, cz = (ex - ax) * c, (ey - ay) * c, (ez - az) * c
+            px += vx * f1 + ax * f2 + cx * h
+            py += vy * f1 + ay * f2 + cy * h
+            pz += vz * f1 + az * f2 + cz * h
+            vx, vy, vz = vx * e_k + ax * f1 + cx * g, vy * e_k + ay * f1 + cy * g, vz * e_k + az * f1 + cz * g
+        return np.array([vx, vy, vz]), np.array([px, py, pz])
+
+    def _predict_state(self, t: float, l_f: np.ndarray, lam: float,
+                       n: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """The LOS and LOS rate now, not at capture: the relative position ``r = d l`` and velocity
+        ``v = d_dot l + d lambda_dot n`` (range and range rate from the closing-speed filter) propagated through
+        the frame's age at constant relative velocity, less our own velocity change (delay_compensation). For an
+        unaccelerated gate the LOS rate grows as the range shrinks (``|r x v| / d^2`` is constant): a late frame
+        shows the rate of a farther gate. The predicted range is floored at the ring's radius (closer, the
+        frame no longer says where the ring's centre is)."""
+        est = self._closing
+        t_now = self._t_now
+        if est is None or est.x is None or t_now is None or not (t_now > t):
+            return l_f, lam, n
+        d, d_dot = float(est.x[0]), float(est.x[1])
+        if d <= 0.5:
+            return l_f, lam, n
+        tau = t_now - t
+        v = d_dot * l_f + (d * lam) * n
+        r = d * l_f + v * tau
+        if self.p.delay_compensation and self._own:
+            t0, t1 = t - self.p.own_delay, t_now - self.p.own_delay  # a command acts own_delay after it is given
+            dv, dp = self._own_motion(t0, t1)
+            r = r - dp
+            v = v - dv
+        d2 = float(np.linalg.norm(r))
+        if not (d2 > 1e-6) or float(r @ l_f) <= 0.0:
+            return l_f, lam, n  # predicted past the gate: the frame says nothing about now
+        l2 = r / d2
+        d2 = max(d2, self.p.gate_radius, 0.5)
+        w = (v - float(v @ l2) * l2) / d2
+        lp = float(np.linalg.norm(w))
+        return l2, lp, (w / lp if lp > 0.0 else np.zeros(3))
 
     def _ring_angle(self, box: BoundingBox | None) -> float:
         """The ring's angular radius (rad): the larger of the range estimate's (``atan(r / d)``; it carries on
@@ -373,7 +458,10 @@ class PNController:
             rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
             lambda_dot, n = self._smooth_rate(l_f, rate.lambda_dot * rate.n, dt)
         self._lam = lambda_dot
-        if self.p.delay_compensation:
+        l_sol = l_f
+        if self.p.delay_prediction:
+            l_sol, lambda_dot, n = self._predict_state(t, l_f, lambda_dot, n)
+        elif self.p.delay_compensation:
             lambda_dot, n = self._predict_rate(t, l_f, lambda_dot, n)
         gp = self.p.guidance
         v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
@@ -382,19 +470,18 @@ class PNController:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
             # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
             # accelerometer misses drag along the thrust axis, so the vertical normal part is not trusted.)
-            lx, ly, _ = l_f.tolist()
-            h = math.hypot(lx, ly)
-            if h > 1e-6:
-                y_pn = np.array([-ly / h, lx / h, 0.0])  # e_z x l, normalised: the PN frame's y axis
+            y_pn = _y_pn(l_f)
+            if y_pn is not None:
                 a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
-        sol = guidance.solve(l_f, a_n, self._gamma(box), y_ref=self._body_y_enu(R_ned_frd))
+        sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._body_y_enu(R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
             a_net = sol.demand_scale * a_n
-            if self._drag is not None:
-                a_net = a_net + (self._drag - float(self._drag @ l_f) * l_f)
+            y_pn = _y_pn(l_f)
+            if self._drag is not None and y_pn is not None:
+                a_net = a_net + float(self._drag @ y_pn) * y_pn
             self._note_command(a_net)
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
         return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
@@ -434,6 +521,13 @@ class PNController:
     def _body_y_enu(R_ned_frd: np.ndarray) -> np.ndarray:
         # FLU y = -FRD y; re-expressed in ENU. Only used to orient the PN frame at a vertical LOS.
         return -(P_NED_ENU @ R_ned_frd[:, 1])
+
+
+def _y_pn(l_enu: np.ndarray) -> np.ndarray | None:
+    """The PN frame's y axis (``e_z x l`` normalised: horizontal, normal to the LOS), None at a vertical LOS."""
+    lx, ly, _ = l_enu.tolist()
+    h = math.hypot(lx, ly)
+    return np.array([-ly / h, lx / h, 0.0]) if h > 1e-6 else None
 
 
 def half_fov(camera: CameraModel) -> float:
