@@ -41,6 +41,11 @@ class PerceptionConfig(Section):
     max_jump: Number = Field(
         0.25, gt=0.0, le=2.0, description="centre jump (fraction of the image diagonal) rejected as a switch"
     )
+    max_jump_rate: Number = Field(
+        1.5, gt=0.0, le=100.0,
+        description="image diagonals per second a box centre may move from the prediction between two frames "
+        "(capped by max_jump): 40 px per frame at 30 fps on 640x480, the max_jump cap at 5 fps",
+    )
     min_iou: Number = Field(0.05, ge=0.0, le=1.0, description="association: IoU with the prediction, or ...")
     coast_time: Seconds = Field(0.3, ge=0.0, le=10.0, description="s; Kalman prediction kept through misses")
     confirm_frames: int = Field(2, ge=1, le=30, description="consecutive detections that (re)acquire a target")
@@ -66,6 +71,26 @@ class PerceptionConfig(Section):
     min_track_score: Number = Field(
         0.25, ge=0.0, lt=1.0,
         description="track score (confidence averaged over frames, misses count 0) below which no box is output",
+    )
+    memory_time: Seconds = Field(
+        1.0, ge=0.0, le=10.0,
+        description="s after a lost track's last measurement during which a new acquisition must be consistent "
+        "with it (size and position) or wait; 0 = no memory",
+    )
+    memory_min_score: Number = Field(
+        0.5, ge=0.0, le=1.0,
+        description="track score at its last measurement a lost track needs to be remembered (a weak track may "
+        "have been on the wrong thing: the gate must not wait for it); 1 = never remember",
+    )
+    memory_growth_rate: Number = Field(
+        1.5, gt=0.0, le=100.0,
+        description="1/s, box size change rate a lost target may show while unseen (a gate 8 m away at 12 m/s: "
+        "1.5; max_growth_rate's 4 /s holds only just before a pass)",
+    )
+    memory_reach_rate: Number = Field(
+        0.3, ge=0.0, le=10.0,
+        description="image diagonals per second the lost target's centre may have moved while unseen (on top of "
+        "max_jump)",
     )
 
     # Camera source (perception/sources.py)

@@ -7,7 +7,8 @@ Policy (one state machine, both tracker kinds):
 * tracking: predict the box with the Kalman filter; measure it with the detector (every frame for
   ``tracker: detect``; every ``redetect_every`` frames or whenever NanoTrack's score drops below
   ``redetect_below`` for ``tracker: nanotrack``, the tracker in between); a measurement that
-  neither overlaps the prediction nor lies within ``max_jump`` of it is a jump and is rejected.
+  neither overlaps the prediction nor lies within reach of it is a jump and is rejected (reach: ``max_jump_rate``
+  image diagonals per second of the frame gap, at most ``max_jump``, plus half the predicted box's diagonal).
   The Kalman-filtered box (smoothing before the LOS) is the output.
 * misses: the Kalman prediction is output for up to ``coast_time`` with decaying confidence, then
   the target is lost and the search starts again. A prediction whose centre is too uncertain
@@ -23,6 +24,23 @@ Policy (one state machine, both tracker kinds):
 * a confident detection (``acquire_confidence``) acquires on its own frame: on real frames the detector's
   false boxes score low (on the dev set 3 % of the boxes at >= 0.5 are false) while waiting for
   ``confirm_frames`` after every miss left the gate unboxed; weaker detections still need confirming.
+* memory of a lost track (``memory_time``; only a track whose score was at least ``memory_min_score`` at its
+  last measurement: a weak track may have been the wrong thing): for that long after its last measurement, a new
+  acquisition must be consistent with it (size change at most ``memory_growth_rate`` over the elapsed time,
+  centre within ``max_jump`` plus ``memory_reach_rate`` per second of it); anything else waits until the
+  memory ends (and still needs ``confirm_frames``). ``reset`` (a gate was passed) forgets it: the next gate
+  is new. ``memory_growth_rate`` is below ``max_growth_rate`` because ``max_growth_rate`` (speed / distance)
+  is reached only in the last moments before a pass, not over a second out of sight of a far gate.
+* an acquisition or a switch needs a box wholly in view: a box cut by the image border is clutter at the edge
+  or a gate whose centre the box does not show; a near gate cut by the border is followed only by a track
+  that already holds it (on the dev sequences, re-acquiring border boxes consistent with the lost track
+  put the track on a tall border box instead of the gate).
+* a switch to a challenger must also be size-consistent with the track (over the time since the track's
+  last measurement); a track gone weak (score below ``min_track_score``) is treated like a lost one (the
+  memory rules if it was sure when last measured, else anything may take it); a challenger that may not
+  switch does not make the target uncertain either. Why: on real PX4 a 45 px gate track gave way to a
+  198 px panorama object 370 px away after the 2 "uncertain" frames of its build-up, and the engagement
+  read the jump as the gate coming near.
 
 The output box's ``t`` is the frame's capture time.
 """
@@ -37,7 +55,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from perception.detector import Detector
-from perception.tracker import BoxKalman, NanoTracker, TrackScore, associate, consistent, iou, plausible
+from perception.tracker import (
+    BoxKalman,
+    NanoTracker,
+    TrackScore,
+    associate,
+    consistent,
+    iou,
+    plausible,
+    touches_border,
+)
 from perception.types import BoundingBox
 
 if TYPE_CHECKING:
@@ -58,6 +85,14 @@ class _Candidate:
     misses: int = 0
 
 
+@dataclass(frozen=True)
+class _Memory:
+    """The lost track: its last filtered box and when it was last measured."""
+
+    box: BoundingBox
+    t: float
+
+
 @dataclass
 class PipelineStats:
     frames: int = 0
@@ -71,6 +106,7 @@ class PipelineStats:
     losses: int = 0
     rejected_inconsistent: int = 0  # implausible aspect or size change
     switches: int = 0  # the track moved to a persistently better candidate
+    held_back: int = 0  # frames an acquisition or switch waited: inconsistent with the (lost) track, or border-cut
     unconfident: int = 0  # frames with no box because the target was uncertain
     detector_ms: list[float] = field(default_factory=list)
     tracker_ms: list[float] = field(default_factory=list)
@@ -85,7 +121,7 @@ class PipelineStats:
             "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted,
             "rejected_jumps": self.rejected_jumps, "acquisitions": self.acquisitions, "losses": self.losses,
             "rejected_inconsistent": self.rejected_inconsistent, "switches": self.switches,
-            "unconfident": self.unconfident,
+            "unconfident": self.unconfident, "held_back": self.held_back,
             "detector_ms_median": med(self.detector_ms), "tracker_ms_median": med(self.tracker_ms),
             "pipeline_ms_median": med(self.total_ms),
         }
@@ -100,7 +136,8 @@ class Pipeline:
         self.pc = pc
         self.width, self.height = int(width), int(height)
         self.tracker = tracker
-        self.max_jump_px = float(pc.max_jump) * math.hypot(width, height)
+        self.diag_px = math.hypot(width, height)
+        self.max_jump_px = float(pc.max_jump) * self.diag_px
         self.stats = PipelineStats()
         self.reset()
 
@@ -122,6 +159,9 @@ class Pipeline:
         self.last_detections: list[BoundingBox] = []
         self.score: TrackScore | None = None
         self.challenger: _Candidate | None = None
+        self.memory: _Memory | None = None
+        self.last_box: BoundingBox | None = None
+        self.held_score = 0.0  # the track's score at its last measurement
         if self.tracker is not None:
             self.tracker.active = False
 
@@ -136,7 +176,7 @@ class Pipeline:
         self.frame_index += 1
         dt = (t - self.t_prev) if self.t_prev is not None else 0.0
         self.t_prev = t
-        out = self._track(frame, t, dt) if self.kf is not None else self._search(frame, t)
+        out = self._track(frame, t, dt) if self.kf is not None else self._search(frame, t, dt)
         if out is not None:
             out = self._clip(out)
         if out is not None:
@@ -158,36 +198,68 @@ class Pipeline:
         self.stats.rejected_inconsistent += len(dets) - len(ok)
         return ok
 
-    def _search(self, frame: np.ndarray, t: float) -> BoundingBox | None:
+    def _search(self, frame: np.ndarray, t: float, dt: float) -> BoundingBox | None:
         dets = self._plausible(self._detect(frame, t))
+        if self.memory is not None and t - self.memory.t > self.pc.memory_time:
+            self.memory = None  # long enough without the old target: anything may acquire (the next gate)
         if not dets:
             self.candidate, self.candidate_count = None, 0
             return None
-        best = dets[0]
+        # Boxes that may acquire now come first: a border box or one the lost track rules out must not keep the
+        # candidate slot from the gate; when there are none, they are followed (acquired once the memory ends).
+        pool = [d for d in dets if self._may_acquire(d, t)] or dets
+        cont = None
         if self.candidate is not None:
-            cont, _ = associate(self.candidate, dets, self.max_jump_px, self.pc.min_iou)
-            if cont is not None:
-                best = cont
-                self.candidate_count += 1
-            else:
-                self.candidate_count = 1
+            fits = [d for d in pool if consistent(self.candidate, d, dt, self.pc.max_growth_rate)]
+            cont, _ = associate(self.candidate, fits, self._jump_px(dt), self.pc.min_iou)
+        if cont is not None:
+            best = cont
+            self.candidate_count += 1
         else:
+            best = pool[0]
             self.candidate_count = 1
         self.candidate = best
         if self.candidate_count < self.pc.confirm_frames and best.confidence < self.pc.acquire_confidence:
+            return None
+        if not self._may_acquire(best, t):
+            self.stats.held_back += 1
             return None
         # Acquired: start the box filter at this detection.
         self.kf = BoxKalman(best, self.pc.smoothing)
         self.t_measured = t
         self.last_conf = best.confidence
+        self.last_box = best
         self.score = TrackScore(best.confidence)
+        self.held_score = best.confidence
         self.challenger = None
+        self.memory = None
         self.candidate, self.candidate_count = None, 0
         self.stats.acquisitions += 1
         self.stats.measured += 1
         if self.tracker is not None:
             self.tracker.init(frame, best)
         return BoundingBox(best.cx, best.cy, best.w, best.h, best.confidence, t)
+
+    def _jump_px(self, dt: float) -> float:
+        """How far (px) a box centre may move between two frames dt apart: ``max_jump_rate`` image diagonals per
+        second, at most ``max_jump``. At 30 fps a far gate cannot cross 200 px in one frame; at 5 Hz it can."""
+        return min(self.max_jump_px, self.pc.max_jump_rate * self.diag_px * max(dt, 0.0))
+
+    def _may_acquire(self, d: BoundingBox, t: float) -> bool:
+        """May ``d`` start a track now? Only a box wholly in view and, within the memory time, only as the lost
+        track's continuation (size and position reachable in the elapsed time)."""
+        if touches_border(d, self.width, self.height):
+            return False
+        m = self.memory
+        return m is None or self._reachable(m.box, t - m.t, d)
+
+    def _reachable(self, last: BoundingBox, elapsed: float, d: BoundingBox) -> bool:
+        """Could the target last seen as ``last`` look like ``d`` after ``elapsed`` s unseen (memory rules)?"""
+        if elapsed > self.pc.memory_time:
+            return True
+        reach = self.max_jump_px + 0.5 * math.hypot(last.w, last.h) + self.pc.memory_reach_rate * self.diag_px * elapsed
+        return (consistent(last, d, elapsed, self.pc.memory_growth_rate)
+                and math.hypot(d.cx - last.cx, d.cy - last.cy) <= reach)
 
     def _track(self, frame: np.ndarray, t: float, dt: float) -> BoundingBox | None:
         assert self.kf is not None
@@ -208,7 +280,7 @@ class Pipeline:
         if run_detector:
             dets = self._plausible(self._detect(frame, t))
             fits = [d for d in dets if consistent(pred, d, dt, self.pc.max_growth_rate)]
-            meas, rejected = associate(pred, fits, self.max_jump_px, self.pc.min_iou)
+            meas, rejected = associate(pred, fits, self._jump_px(dt), self.pc.min_iou)
             self.stats.rejected_jumps += rejected
             self.stats.rejected_inconsistent += len(dets) - len(fits)
             self._follow_challenger([d for d in dets if d is not meas], dt)
@@ -217,13 +289,18 @@ class Pipeline:
         assert self.score is not None
         self.score.update(meas.confidence if meas is not None else None)
         ch = self.challenger
-        if ch is not None and ch.score.streak >= self.pc.switch_frames and self._better(ch):
+        rival = ch is not None and self._better(ch) and self._may_switch(ch, pred, t)
+        if ch is not None and ch.score.streak >= self.pc.switch_frames and self._better(ch) and not rival:
+            self.stats.held_back += 1
+        if rival and ch is not None and ch.score.streak >= self.pc.switch_frames:
             return self._switch(frame, ch, t)
-        # Uncertain: a clearly better candidate is building up, or the track itself is weak.
-        uncertain = (ch is not None and ch.score.streak >= self.pc.switch_frames // 2 + 1 and self._better(ch)) or (
+        # Uncertain: a clearly better candidate that may take the track is building up, or the track is weak.
+        uncertain = (rival and ch is not None and ch.score.streak >= self.pc.switch_frames // 2 + 1) or (
             self.score.value < self.pc.min_track_score)
         if meas is not None:
             box = self.kf.correct(meas)
+            self.last_box = box
+            self.held_score = self.score.value
             self.t_measured = t
             self.last_conf = meas.confidence
             self.stats.measured += 1
@@ -236,6 +313,10 @@ class Pipeline:
         if since > self.pc.coast_time or self.pc.coast_time <= 0.0:
             self.kf = None
             self.stats.losses += 1
+            held = self.last_box is not None and self.t_measured is not None
+            if held and self.held_score >= self.pc.memory_min_score:
+                assert self.last_box is not None and self.t_measured is not None
+                self.memory = _Memory(self.last_box, self.t_measured)
             if self.tracker is not None:
                 self.tracker.active = False
             # a challenger seen often enough becomes the search candidate: re-acquired on its next detection
@@ -262,11 +343,25 @@ class Pipeline:
         assert self.score is not None
         return ch.score.value > self.score.value + self._MARGIN
 
+    def _may_switch(self, ch: _Candidate, pred: BoundingBox, t: float) -> bool:
+        """A challenger may take the track only wholly in view and at a size the track could have grown (or
+        shrunk) to since its last measurement; a track gone weak through misses is treated like a lost one (the
+        memory rules, if it was sure when last measured)."""
+        assert self.score is not None
+        if touches_border(ch.box, self.width, self.height):
+            return False
+        since = t - (self.t_measured if self.t_measured is not None else t)
+        if self.score.value < self.pc.min_track_score:
+            if self.last_box is None or self.held_score < self.pc.memory_min_score:
+                return True
+            return self._reachable(self.last_box, since, ch.box)
+        return consistent(pred, ch.box, since, self.pc.max_growth_rate)
+
     def _follow_challenger(self, others: list[BoundingBox], dt: float) -> None:
         ch = self.challenger
         if ch is not None:
             fits = [d for d in others if consistent(ch.box, d, dt, self.pc.max_growth_rate)]
-            nxt, _ = associate(ch.box, fits, self.max_jump_px, self.pc.min_iou)
+            nxt, _ = associate(ch.box, fits, self._jump_px(dt), self.pc.min_iou)
             if nxt is not None:
                 ch.box = nxt
                 ch.misses = 0
@@ -286,6 +381,8 @@ class Pipeline:
         self.score, self.challenger = ch.score, None
         self.t_measured = t
         self.last_conf = ch.box.confidence
+        self.last_box = ch.box
+        self.held_score = ch.score.value
         self.stats.switches += 1
         self.stats.measured += 1
         if self.tracker is not None:
