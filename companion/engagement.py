@@ -33,7 +33,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal, Protocol
 
 import numpy as np
@@ -43,6 +43,8 @@ from companion.app.safety import CloseDetector, SafetyLimits
 from companion.app.states import Reason
 from companion.frames import P_NED_ENU, R_from_euler_ned_deg, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import Setpoint
+from companion.targetlock import LockParams, TargetLock
+from perception.los import CameraModel
 from perception.types import BoundingBox
 
 if TYPE_CHECKING:
@@ -115,8 +117,11 @@ class EngagementParams:
                     f_max: float | None = None) -> EngagementParams:
         """From the config; thrust numbers default to the airframe's (the app passes the autopilot's)."""
         a = cfg.app
+        # A synthetic course has app.synthetic.count gates: what lies beyond is background, not a next gate (the
+        # cap a field user sets with app.max_gates for a known course).
+        max_gates = min(a.max_gates, a.synthetic.count) if a.camera == "synthetic" else a.max_gates
         return cls(a.acquire_frames, a.acquire_timeout, a.on_close, a.pass_timeout, a.recover_time,
-                   a.recover_thrust_scale, a.pull_up_pitch, a.next_gate, a.max_gates,
+                   a.recover_thrust_scale, a.pull_up_pitch, a.next_gate, max_gates,
                    cfg.airframe.hover_thrust if hover_thrust is None else hover_thrust, cfg.airframe.thrust_min,
                    cfg.airframe.f_min if f_min is None else f_min, cfg.airframe.f_max if f_max is None else f_max,
                    cfg.camera.width, cfg.camera.height, math.radians(cfg.airframe.max_tilt))
@@ -176,15 +181,22 @@ class Engagement:
     _old_gone: bool = True  # the last engaged gate has left the view (a track now is a new gate)
     _imu: tuple[np.ndarray | None, float | None] = (None, None)  # this step's accelerometer and time now
     _last_size: float = 0.0  # larger side of the last box the controller used, px
+    lock: TargetLock | None = None  # is a box still the engaged gate (companion/targetlock.py); None = no check
+    _rejecting: bool = False  # the last box was rejected by the lock (one event per spell)
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
-        return cls.create(params or EngagementParams.from_config(cfg), controller, cfg.app, cfg.safety)
+        lock = None
+        if cfg.app.target_lock:
+            g = cfg.guidance
+            lock = TargetLock(LockParams(g.v_rel_bar, g.gate_radius, cfg.los_filter.max_rate,
+                                         float(cfg.perception.max_growth_rate)), CameraModel.from_config(cfg.camera))
+        return cls.create(params or EngagementParams.from_config(cfg), controller, cfg.app, cfg.safety, lock)
 
     @classmethod
     def create(cls, params: EngagementParams, controller: Steering, app: AppConfig,
-               safety: SafetyConfig) -> Engagement:
-        return cls(params, controller, CloseDetector(app, params.width), SafetyLimits(safety))
+               safety: SafetyConfig, lock: TargetLock | None = None) -> Engagement:
+        return cls(params, controller, CloseDetector(app, params.width), SafetyLimits(safety), lock=lock)
 
     # -- the step ------------------------------------------------------------------------------------
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray, baro_rel_alt: float | None,
@@ -202,7 +214,25 @@ class Engagement:
         if valid and p.complete_boxes:
             whole = complete_clipped_box(box, p.width, p.height, p.cut_edge_px)
             box = whole if whole.is_valid(p.width, p.height) else box
+        lock_event = ""
+        if valid and self.phase is Phase.ENGAGE and self.lock is not None:
+            assert box is not None
+            chk = self.lock.check(t, box, R_from_quat_wxyz(q_wxyz_ned_frd))
+            if not chk.ok:
+                # Another object's box: for every decision below, no box at all (the controller coasts, the
+                # target-lost clock runs, the close detector does not see it).
+                if not self._rejecting:
+                    lock_event = f"gate {self.passes[-1].gate}: box rejected, {chk.why}"
+                valid, box = False, None
+            self._rejecting = not chk.ok
         self._streak = self._streak + 1 if valid else 0
+        d = self._step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt, events)
+        if lock_event:
+            d = replace(d, events=(*d.events, lock_event))
+        return d
+
+    def _step(self, t: float, box: BoundingBox | None, valid: bool, q_wxyz_ned_frd: np.ndarray,
+              baro_rel_alt: float | None, events: Iterable[LinkEvent]) -> Decision:
         ph = self.phase
         if ph.done:
             return Decision(t, ph, None)
@@ -236,6 +266,11 @@ class Engagement:
         prev = self.phase
         self.controller.reset()
         self.close.reset()
+        if self.lock is not None:
+            self.lock.reset()
+            if box is not None:
+                self.lock.check(t, box, R_from_quat_wxyz(q))  # the engaged box is the first reference
+        self._rejecting = False
         self._engage_start = self._last_valid = t
         self._los_enu = None
         self.passes.append(GatePass(len(self.passes) + 1, t))

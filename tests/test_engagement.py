@@ -86,11 +86,12 @@ def test_no_stable_track_lands_with_no_target():
 
 
 def _ramp(size: float, start: float = 40.0) -> list[float]:
-    """Box sizes that double each frame from ``start`` up to ``size``: as fast as a box may grow and still be
-    the same gate come nearer (CloseDetector.MAX_STEP); a bigger jump is another object."""
+    """Box sizes growing 1.4x a frame from ``start`` up to ``size``: fast, and still the same gate come nearer
+    (the target lock allows a detector's 1.5x jitter a frame on top of an approach; a bigger jump is another
+    object, companion/targetlock.py)."""
     sizes = [start]
     while sizes[-1] < size:
-        sizes.append(min(size, 2.0 * sizes[-1]))
+        sizes.append(min(size, 1.4 * sizes[-1]))
     return sizes[1:]
 
 
@@ -292,8 +293,9 @@ def test_a_box_lost_when_nearly_close_starts_the_pass_and_one_lost_far_away_does
     assert d.phase is Phase.ENGAGE and d.control.mode == "coast"
     # Near: a box of 0.55 of the width (> size_threshold / near_factor), then the detector loses the ring.
     assert CFG.app.size_threshold / 2 < 0.55
-    r = engaged()
-    r.feed([box(0.55 * W)] * 3)
+    r = engaged("app.close_trigger=size")  # the ramp must not trip time-to-contact first
+    r.feed([box(s) for s in _ramp(0.55 * W)] + [box(0.55 * W)] * 2)
+    assert r.eng.phase is Phase.ENGAGE
     d = r.feed([None])[0]
     assert d.phase is Phase.PASS and d.why.startswith("gate lost while close")
     assert d.setpoint.R_ned_frd[2, 1] == pytest.approx(0.0, abs=1e-9)  # the straight pass, no roll about the LOS

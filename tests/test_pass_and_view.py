@@ -83,9 +83,9 @@ def _close_run(*overrides: str, accel_frd: np.ndarray | None):
         d = eng.step(t, b, LEVEL, 10.0, (), accel_frd, t)
         t += DT
     assert d is not None and d.phase is Phase.ENGAGE
-    # The gate comes near as fast as a box may grow and still be the same gate (CloseDetector.MAX_STEP: 2x a
-    # frame); one jump from 60 to 620 px would be another object.
-    for size in (120.0, 240.0, 480.0, 620.0):
+    # The gate comes near fast (1.4x a frame), and still as the same gate (companion/targetlock.py allows a
+    # detector's 1.5x jitter a frame on top of an approach); one jump from 60 to 620 px would be another object.
+    for size in (84.0, 118.0, 165.0, 231.0, 323.0, 452.0, 620.0):
         d = eng.step(t, BoundingBox(W / 2 + 40, H / 2, size, size, 0.9, t), LEVEL, 10.0, (), accel_frd, t)
         t += DT
         if d.phase is not Phase.ENGAGE:

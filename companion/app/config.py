@@ -169,7 +169,12 @@ class AppConfig(Section):
         1.1, ge=0.8, le=1.5, description="recover thrust as a multiple of hover thrust (>1 climbs)"
     )
     next_gate: bool = Field(True, description="engage again if a new gate is tracked during recover")
-    max_gates: int = Field(10, ge=1, le=1000)
+    max_gates: int = Field(10, ge=1, le=1000, description="gates to engage in a row (camera synthetic: at most "
+                           "synthetic.count, the course's length)")
+    target_lock: bool = Field(
+        True, description="during ENGAGE a box whose size or direction no approach explains is another object "
+        "and counts as no box (companion/targetlock.py)"
+    )
     camera: Literal["source", "synthetic"] = Field(
         "source", description="source: the perception camera source; synthetic: render from the vehicle pose"
     )

@@ -127,6 +127,7 @@ class FlightApp:
         self._fault: Abort | None = None
         self._seq: asyncio.Task[None] | None = None
         self._last_setpoint = math.inf  # clock time of the last fresh setpoint (inf: none owed)
+        self._offboard_start: asyncio.Task | None = None  # PX4's switch to OFFBOARD, while it is under way
         self._baro0: float | None = None
         self._connected = False
         self._last_out: ControlOutput | None = None
@@ -354,6 +355,12 @@ class FlightApp:
         params = EngagementParams.from_config(self.cfg, hover_thrust=p.hover_thrust, f_min=p.guidance.f_min,
                                               f_max=p.guidance.f_max)
         self.engagement = eng = Engagement.from_config(self.cfg, self.ctrl, params)
+        try:
+            await self._frame_loop(eng)
+        finally:
+            await self._cancel_offboard_start()
+
+    async def _frame_loop(self, eng: Engagement) -> None:
         while True:
             self._check_fault()
             frame = await self.camera.read()
@@ -363,6 +370,8 @@ class FlightApp:
             valid = box is not None and box.is_valid(self.width, self.height)
             self.stats.frames += 1
             self._log_detection(frame, box, valid)
+            if await self._switching_to_offboard():
+                continue  # perceived and logged (the tracker keeps the gate); PX4 does not fly our setpoints yet
             imu = self.link.imu  # the newest accelerometer sample (50 Hz) for the controller's closing speed
             d = eng.step(frame.t, box, self._attitude_at(frame.t), self._baro_rel(),
                          accel_frd=imu.accel_frd if imu is not None else None, t_now=t_avail)
@@ -398,12 +407,15 @@ class FlightApp:
                     reset()  # the tracker must not hold on to (or coast) the gate we just passed
         self._hover_update(d.setpoint.thrust)
         if first:
-            # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then
-            # waits until PX4 reports OFFBOARD (OffboardDenied otherwise).
-            await self.link.start_offboard(d.setpoint)
-            self._check_fault()
+            # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then waits until
+            # PX4 reports OFFBOARD (OffboardDenied otherwise), 0.3-0.9 s on PX4 1.15. That wait runs beside the
+            # frame loop (_switching_to_offboard): awaited here it blinded perception for that long at every
+            # engagement (the tracker lost the gate and re-acquired whatever was most confident: clutter, on
+            # real PX4).
+            self._offboard_start = asyncio.create_task(self.link.start_offboard(d.setpoint),
+                                                       name="app:start_offboard")
             self._last_setpoint = self.clock()
-            # Logged, but not a latency sample: it includes PX4's mode switch, once per flight.
+            # Logged, but not a latency sample: the mode switch is still under way.
             self._log_control(frame, d, (self._last_setpoint - t_avail) * 1e3)
             return False
         await self.link.set_setpoint(d.setpoint)
@@ -414,6 +426,33 @@ class FlightApp:
         self.stats.latencies_ms.append(lat_ms)
         self._log_control(frame, d, lat_ms)
         return False
+
+    async def _switching_to_offboard(self) -> bool:
+        """True while PX4 has not yet confirmed OFFBOARD: frames are perceived, but the engagement waits (as
+        before, its next step sees the time that passed), since PX4 does not fly our setpoints yet. A refused or
+        unanswered switch raises here (OffboardDenied / CommandTimeout), mapped to its safe state as before."""
+        task = self._offboard_start
+        if task is None:
+            return False
+        if not task.done():
+            self._last_setpoint = self.clock()  # the link streams the first setpoint meanwhile
+            return True
+        self._offboard_start = None
+        task.result()
+        self._check_fault()
+        self._last_setpoint = self.clock()
+        return False
+
+    async def _cancel_offboard_start(self) -> None:
+        """The flight left the frame loop (an end or an abort) while PX4 was still switching to OFFBOARD: stop
+        waiting, so nothing starts streaming setpoints after the safe end has commanded its mode."""
+        task, self._offboard_start = self._offboard_start, None
+        if task is None:
+            return
+        if not task.done():
+            task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
 
     def _outcome(self, d: Decision) -> tuple[Reason, str]:
         """The normal end's reason: what the engagement claimed, checked against ground truth where it exists."""
@@ -649,6 +688,8 @@ class FlightApp:
             return
         if pilot_start and (st is State.ACQUIRE or (st is State.ENGAGE and not link.offboard_active)):
             return  # the pilot flies in a mode of the pilot's choosing until PX4 confirms OFFBOARD
+        if st.offboard and self._offboard_start is not None and not self._offboard_start.done():
+            return  # PX4 is switching to OFFBOARD (the frame loop runs on); a refusal ends the start with its error
         if st.offboard and link.offboard_active:
             return  # the link's own offboard watchdog reports it (offboard_lost) and stops commanding first
         who = Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE
