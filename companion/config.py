@@ -198,6 +198,14 @@ class LosFilterConfig(Section):
     rate_cutoff: Hertz = Field(
         0.0, ge=0.0, le=1000.0, description="low-pass on the LOS rate vector (lambda_dot n), Hz; 0 = off"
     )
+    rate_cutoff_min: Hertz = Field(
+        0.0, ge=0.0, le=1000.0, description="> 0: the rate low-pass's cut-off scheduled on the time to go, "
+        "max(this, min(rate_cutoff, rate_cutoff_tgo / t_go)), Hz (needs guidance.gate_radius); 0 = rate_cutoff"
+    )
+    rate_cutoff_tgo: Number = Field(
+        2.0, gt=0.0, le=100.0, description="the scheduled cut-off is at least this / time to go (Hz): its lag "
+        "1 / (2 pi f_c) stays below t_go / (2 pi this)"
+    )
     kind: Literal["lowpass", "kalman"] = Field(
         "lowpass", description="lowpass: the low-pass above, rate by differencing; kalman: constant-velocity "
         "Kalman filter on the LOS (perception/los.py LosKalman; docs/noise.md), rate_cutoff still applies"

@@ -60,6 +60,8 @@ class ControllerParams:
     max_los_rate: float  # rad/s; faster apparent LOS motion is a jump (tracker switched targets)
     max_dt: float  # s; a longer gap restarts the LOS filter
     rate_cutoff_hz: float = 0.0  # low-pass on the LOS rate vector; 0 = off
+    rate_cutoff_min: float = 0.0  # Hz; > 0: the cut-off scheduled on the time to go down to this (_rate_cutoff)
+    rate_cutoff_tgo: float = 2.0  # the scheduled cut-off is at least this / t_go (Hz)
     jump_reacquire_frames: int = 3  # consecutive "jumps" that agree are a real re-acquisition
     closing: ClosingParams | None = None  # None: the paper's fixed v_rel_bar
     drag_compensation: float = 0.0  # fraction of the measured drag normal to the LOS added to the PN demand
@@ -147,7 +149,8 @@ class PNController:
             los_cutoff_hz=cfg.los_filter.cutoff,
             max_los_rate=cfg.los_filter.max_rate,
             max_dt=cfg.los_filter.max_dt,
-            rate_cutoff_hz=cfg.los_filter.rate_cutoff,
+            rate_cutoff_hz=cfg.los_filter.rate_cutoff, rate_cutoff_min=cfg.los_filter.rate_cutoff_min,
+            rate_cutoff_tgo=cfg.los_filter.rate_cutoff_tgo,
             closing=closing_params(cfg),
             drag_compensation=cfg.guidance.drag_compensation,
             view_margin=math.radians(cfg.guidance.view_margin) if cfg.guidance.keep_ring_in_view else None,
@@ -495,7 +498,7 @@ class PNController:
             if self._w is None or not (0.0 < dt <= self.p.max_dt):
                 self._w = w.copy()
             else:
-                beta = 1.0 - math.exp(-2.0 * math.pi * self.p.rate_cutoff_hz * dt)
+                beta = 1.0 - math.exp(-2.0 * math.pi * self._rate_cutoff() * dt)
                 ox, oy, oz = self._w.tolist()
                 wx, wy, wz = ox + beta * (wx - ox), oy + beta * (wy - oy), oz + beta * (wz - oz)
                 lx, ly, lz = l_f.tolist()
@@ -504,6 +507,24 @@ class PNController:
                 self._w = np.array([wx, wy, wz])
         lam = math.sqrt(wx * wx + wy * wy + wz * wz)
         return lam, (np.array([wx / lam, wy / lam, wz / lam]) if lam > 0.0 else np.zeros(3))
+
+    def _rate_cutoff(self) -> float:
+        """The LOS-rate low-pass's cut-off now (Hz). Scheduled on the time to go (when rate_cutoff_min > 0): PN's
+        loop must act within ~t_go, so a filter lag of ``1 / (2 pi f_c)`` costs nothing while it is a small part
+        of it, ``f_c >= rate_cutoff_tgo / t_go``; far from the gate the cut-off drops to rate_cutoff_min and the
+        box noise the gain ``k_PN v_rel`` turns into attitude jitter with it. t_go is the range over the closing
+        speed less the frame's age (the frame is that much nearer now)."""
+        fc = self.p.rate_cutoff_hz
+        est = self._closing
+        if self.p.rate_cutoff_min <= 0.0 or est is None or est.x is None:
+            return fc
+        d, d_dot = est.x.tolist()
+        if d_dot >= -0.5:  # not closing: no time to go
+            return fc
+        t_go = d / -d_dot - self._latency
+        if t_go <= 0.0:
+            return fc
+        return max(self.p.rate_cutoff_min, min(fc, self.p.rate_cutoff_tgo / t_go))
 
     def _no_box(self, t: float, R_ned_frd: np.ndarray, rejected: str) -> ControlOutput:
         zero = np.zeros(3)
