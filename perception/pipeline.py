@@ -313,10 +313,9 @@ class Pipeline:
         if since > self.pc.coast_time or self.pc.coast_time <= 0.0:
             self.kf = None
             self.stats.losses += 1
-            held = self.last_box is not None and self.t_measured is not None
-            if held and self.held_score >= self.pc.memory_min_score:
-                assert self.last_box is not None and self.t_measured is not None
-                self.memory = _Memory(self.last_box, self.t_measured)
+            last, t_last = self.last_box, self.t_measured
+            if last is not None and t_last is not None and self.held_score >= self.pc.memory_min_score:
+                self.memory = _Memory(last, t_last)  # a sure track: what re-acquires must be consistent with it
             if self.tracker is not None:
                 self.tracker.active = False
             # a challenger seen often enough becomes the search candidate: re-acquired on its next detection
