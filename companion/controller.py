@@ -17,7 +17,6 @@ configured gate radius, filtered with the accelerometer when it is given.
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
@@ -28,6 +27,7 @@ from companion import guidance
 from companion.closing import ClosingParams, ClosingSpeedEstimator
 from companion.frames import P_NED_ENU, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import GuidanceParams, Setpoint
+from companion.ownmotion import OwnMotion
 from perception.los import CameraModel, LosFilter, LosKalman, LosKalmanParams
 from perception.types import BoundingBox
 
@@ -186,8 +186,7 @@ class PNController:
         self._lam = 0.0  # last LOS rate, rad/s
         self._latency = 0.0  # age of the last frame when it reached us, s
         self._t_now: float | None = None  # the caller's time now (frame arrival), when given
-        self._own: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t issued, commanded accel, modelled accel)
-        self._own_t: list[float] = []  # the times of _own, for bisection
+        self._own = OwnMotion(self.p.own_lag, self.p.own_drag_rate)  # our commands since a frame (delay prediction)
         self._drag: np.ndarray | None = None  # filtered aerodynamic acceleration (ENU), from the accelerometer
         self._t_drag: float | None = None
         if self._closing is not None:
@@ -299,38 +298,8 @@ class PNController:
     def _note_command(self, a: np.ndarray) -> None:
         """Remember the acceleration commanded now (world ENU, normal to the LOS) for the delay compensation."""
         t = self._t_now if self._t_now is not None else self._t_last
-        if t is None:
-            return
-        prev = self._own[-1] if self._own else None
-        tau = self.p.own_lag
-        if prev is None:
-            eff = np.zeros(3)
-        else:
-            t0, a0, e0 = prev
-            eff = a0 + (e0 - a0) * math.exp(-(t - t0) / tau) if tau > 0.0 else a0.copy()
-        self._own.append((t, np.asarray(a, dtype=float).copy(), eff))
-        self._own_t.append(t)
-        horizon = t - 2.0  # older commands never fall in a frame's window
-        while len(self._own) > 2 and self._own[1][0] < horizon:
-            self._own.pop(0)
-            self._own_t.pop(0)
-
-    def _own_dv(self, t0: float, t1: float) -> np.ndarray:
-        """The velocity our own (modelled) acceleration added between t0 and t1: commands held until the next one,
-        each reached with a first-order lag (times of command: the callers shift them by own_delay)."""
-        dv = np.zeros(3)
-        tau = self.p.own_lag
-        hist = self._own
-        for i, (ti, ai, ei) in enumerate(hist):
-            tn = hist[i + 1][0] if i + 1 < len(hist) else t1
-            s0, s1 = max(t0, ti), min(t1, tn)
-            if s1 <= s0:
-                continue
-            if tau > 0.0:
-                dv += ai * (s1 - s0) + (ei - ai) * tau * (math.exp(-(s0 - ti) / tau) - math.exp(-(s1 - ti) / tau))
-            else:
-                dv += ai * (s1 - s0)
-        return dv
+        if t is not None:
+            self._own.note(t, a)
 
     def _predict_rate(self, t: float, l_f: np.ndarray, lam: float, n: np.ndarray) -> tuple[float, np.ndarray]:
         """The LOS rate now, not at capture: ``dl/dt = v_rel_normal / d``, so our own velocity change since the
@@ -340,53 +309,11 @@ class PNController:
         t_now = self._t_now
         if d is None or d <= 0.5 or t_now is None or not self._own:
             return lam, n
-        dv = self._own_dv(t - self.p.own_delay, t_now - self.p.own_delay)  # a command acts own_delay later
+        dv = self._own.dv(t - self.p.own_delay, t_now - self.p.own_delay)  # a command acts own_delay later
         dv = dv - float(dv @ l_f) * l_f
         w = lam * n - dv / d
         lp = float(np.linalg.norm(w))
         return lp, (w / lp if lp > 0.0 else np.zeros(3))
-
-    def _own_motion(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
-        """The velocity and displacement our own (modelled) acceleration added between t0 and t1 (times of
-        command: the caller shifts them by own_delay), with drag taking the added velocity back at
-        ``own_drag_rate`` (1/s): ``dv' = a_eff - k dv``, exact for the piecewise first-order ``a_eff`` of
-        :meth:`_own_dv`."""
-        k, tau = self.p.own_drag_rate, self.p.own_lag
-        vx = vy = vz = px = py = pz = 0.0
-        hist = self._own
-        first = max(0, bisect.bisect_right(self._own_t, t0) - 1)  # the command in effect at t0
-        for i in range(first, len(hist)):
-            ti, ai, ei = hist[i]
-            if ti >= t1:
-                break
-            tn = hist[i + 1][0] if i + 1 < len(hist) else t1
-            s0, s1 = max(t0, ti), min(t1, tn)
-            if s1 <= s0:
-                continue
-            dt = s1 - s0
-            e_k = math.exp(-k * dt)
-            f1 = -math.expm1(-k * dt) / k if k * dt > 1e-12 else dt  # int_0^dt e^{-k u} du
-            f2 = (dt - f1) / k if k * dt > 1e-4 else dt * dt * (0.5 - k * dt / 6.0)  # int_0^dt f1(u) du
-            g = h = 0.0  # the lag's transient: int of e^{-u/tau} through the drag, for velocity and displacement
-            if tau > 0.0:
-                e_t = math.exp(-dt / tau)
-                m = k - 1.0 / tau
-                if abs(m) > 1e-6:
-                    g = (e_t - e_k) / m
-                    h = (tau * (1.0 - e_t) - f1) / m
-                else:
-                    g = dt * e_k
-                    h = (1.0 - e_k * (1.0 + k * dt)) / (k * k)
-                c = math.exp(-(s0 - ti) / tau)
-            else:
-                c = 0.0
-            (ax, ay, az), (ex, ey, ez) = ai.tolist(), ei.tolist()
-            cx, cy, cz = (ex - ax) * c, (ey - ay) * c, (ez - az) * c
-            px += vx * f1 + ax * f2 + cx * h
-            py += vy * f1 + ay * f2 + cy * h
-            pz += vz * f1 + az * f2 + cz * h
-            vx, vy, vz = vx * e_k + ax * f1 + cx * g, vy * e_k + ay * f1 + cy * g, vz * e_k + az * f1 + cz * g
-        return np.array([vx, vy, vz]), np.array([px, py, pz])
 
     def _predict_state(self, t: float, l_f: np.ndarray, lam: float,
                        n: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -408,7 +335,7 @@ class PNController:
         r = d * l_f + v * tau
         if self.p.delay_compensation and self._own:
             t0, t1 = t - self.p.own_delay, t_now - self.p.own_delay  # a command acts own_delay after it is given
-            dv, dp = self._own_motion(t0, t1)
+            dv, dp = self._own.motion(t0, t1)
             r = r - dp
             v = v - dv
         d2 = float(np.linalg.norm(r))

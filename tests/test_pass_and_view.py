@@ -267,7 +267,7 @@ def test_own_velocity_model_against_an_integral(tau: float, t0: float, width: fl
         ctrl._t_now = t
         ctrl._note_command(a)
     t1 = t0 + width
-    dv = ctrl._own_dv(t0, t1)
+    dv = ctrl._own.dv(t0, t1)
     # Independent: Euler integration of tau * da_eff/dt = a_cmd(t) - a_eff, a_eff(0) = 0.
     h = 1e-4
     eff = np.zeros(3)
