@@ -370,7 +370,7 @@ class FlightApp:
             valid = box is not None and box.is_valid(self.width, self.height)
             self.stats.frames += 1
             self._log_detection(frame, box, valid)
-            if await self._switching_to_offboard():
+            if self._switching_to_offboard():
                 continue  # perceived and logged (the tracker keeps the gate); PX4 does not fly our setpoints yet
             imu = self.link.imu  # the newest accelerometer sample (50 Hz) for the controller's closing speed
             d = eng.step(frame.t, box, self._attitude_at(frame.t), self._baro_rel(),
@@ -427,7 +427,7 @@ class FlightApp:
         self._log_control(frame, d, lat_ms)
         return False
 
-    async def _switching_to_offboard(self) -> bool:
+    def _switching_to_offboard(self) -> bool:
         """True while PX4 has not yet confirmed OFFBOARD: frames are perceived, but the engagement waits (as
         before, its next step sees the time that passed), since PX4 does not fly our setpoints yet. A refused or
         unanswered switch raises here (OffboardDenied / CommandTimeout), mapped to its safe state as before."""
