@@ -170,8 +170,8 @@ class FlightApp:
                 print(f"companion: PX4 {level}: {detail.get('text')}", file=self.stderr, flush=True)
             return
         self.log.event(f"link {kind} {detail}" if detail else f"link {kind}", "warn" if kind in (
-            "watchdog", "loop_guard", "offboard_lost", "link_lost", "close_leaked", "telemetry_error",
-            "telemetry_rejected", "telemetry_invalid", "envelope", "exposed") else "info")
+            "watchdog", "loop_guard", "loop_guard_stop", "offboard_lost", "link_lost", "close_leaked",
+            "telemetry_error", "telemetry_rejected", "telemetry_invalid", "envelope", "exposed") else "info")
         if kind in ("watchdog", "loop_guard"):  # the link's setpoint watchdog / loop guard: our output stopped
             self.trip(Reason.PERCEPTION_STALL, f"link watchdog: no fresh setpoint for {detail.get('age', 0):.2f} s")
         elif kind == "offboard_lost":  # PX4 left OFFBOARD by itself: the pilot or a PX4 failsafe has it

@@ -322,6 +322,8 @@ class VehicleLink:
         self._latest_sp: _Sp | None = None
         self._last_fresh = -math.inf
         self._last_sent = -math.inf
+        self._switch_pending = False  # start_offboard under way: PX4 may fly our first setpoint, unconfirmed
+        self._switch_beat = -math.inf  # the event loop's beat meanwhile
         self._offboard_tasks: list[asyncio.Task] = []
         self._guard_stop = threading.Event()
         self._guard_busy = False
@@ -913,28 +915,48 @@ class VehicleLink:
         timeout = self.cfg.command_timeout if timeout is None else timeout
         sp = self._validated(first_setpoint)
         self._latest_sp = sp
-        self._last_fresh = time.monotonic()
+        self._last_fresh = self._switch_beat = time.monotonic()
         self._offboard_requested = True
-        await self._send(sp)
-        await asyncio.sleep(0.2)  # PX4 wants a setpoint stream before it accepts OFFBOARD
-        self._status_text = None
-        n0 = self._mode_reports
+        self._offboard_end_reason = None  # set by the loop guard if it hands over before the switch is seen
+        # From the first setpoint on, MAVSDK resends it by itself: the loop guard watches from here, not from
+        # the confirmation (PX4's 1 Hz heartbeat, up to ~1 s later), so a loop stalled meanwhile is caught too.
+        self._switch_pending = True
+        self._start_loop_guard()
+        beat = asyncio.create_task(self._beat_while_switching(), name="link:switch_beat")
         try:
-            await self._call("start offboard", self._offboard.start, timeout)
-        except OffboardError as e:
-            if e.result.name == "TIMEOUT":
-                raise CommandTimeout(f"start offboard: no answer from the autopilot{self._why()}") from None
-            raise OffboardDenied(f"offboard refused: {e.result.name}{self._why()}") from None
-        await self._wait_until(lambda: self._mode_reports > n0 and self._flight_mode == "OFFBOARD",
-                               max(timeout, self.cfg.mode_timeout),
-                               "offboard accepted but the vehicle is not in OFFBOARD", OffboardDenied)
-        self._offboard_active = True
-        self._offboard_end_reason = None
-        self._last_fresh = time.monotonic()
+            await self._send(sp)
+            await asyncio.sleep(0.2)  # PX4 wants a setpoint stream before it accepts OFFBOARD
+            self._status_text = None
+            n0 = self._mode_reports
+            try:
+                await self._call("start offboard", self._offboard.start, timeout)
+            except OffboardError as e:
+                if e.result.name == "TIMEOUT":
+                    raise CommandTimeout(f"start offboard: no answer from the autopilot{self._why()}") from None
+                raise OffboardDenied(f"offboard refused: {e.result.name}{self._why()}") from None
+            await self._wait_until(lambda: (self._mode_reports > n0 and self._flight_mode == "OFFBOARD")
+                                   or self._offboard_end_reason is not None,
+                                   max(timeout, self.cfg.mode_timeout),
+                                   "offboard accepted but the vehicle is not in OFFBOARD", OffboardDenied)
+            if self._offboard_end_reason is not None:  # the loop guard handed over to HOLD while we waited
+                raise OffboardLost(f"offboard start abandoned: {self._offboard_end_reason}")
+            self._last_fresh = time.monotonic()
+            self._offboard_active = True  # before the switch stops pending: the guard never sees neither
+        except BaseException:
+            self._guard_stop.set()
+            raise
+        finally:
+            self._switch_pending = False
+            beat.cancel()
         self._offboard_tasks = [asyncio.create_task(self._stream(), name="link:setpoint_stream"),
                                 asyncio.create_task(self._watchdog(), name="link:watchdog")]
-        self._start_loop_guard()
         self._emit("offboard_started")
+
+    async def _beat_while_switching(self) -> None:
+        """While the switch is pending no fresh setpoint is due; the guard then watches the loop itself."""
+        while True:
+            self._switch_beat = time.monotonic()
+            await asyncio.sleep(0.05)
 
     async def set_setpoint(self, sp: SetpointLike) -> None:
         """Send a fresh setpoint (the control loop calls this every frame)."""
@@ -995,23 +1017,29 @@ class VehicleLink:
 
         def run() -> None:
             while not stop.wait(0.05):
-                if not self._offboard_active:
+                if self._offboard_active:
+                    age = time.monotonic() - self._last_fresh
+                elif self._switch_pending:  # no fresh setpoint is due yet: the loop's own beat
+                    age = time.monotonic() - max(self._last_fresh, self._switch_beat)
+                else:
                     return
-                age = time.monotonic() - self._last_fresh
                 if age <= limit:
                     continue
                 self._offboard_active = False
                 self._offboard_end_reason = (f"loop guard: no fresh setpoint for {age:.2f} s and the event loop "
                                              "is stalled, handed over to HOLD")
                 self._guard_busy = True
+                # Reported before the blocking stop: a loop that wakes meanwhile learns the cause first.
+                with contextlib.suppress(RuntimeError):  # loop already closed
+                    loop.call_soon_threadsafe(functools.partial(self._emit, "loop_guard", age=age))
                 try:
                     result: object = plugin.stop()
                 except Exception as e:  # reported below; the thread must end either way
                     result = e
                 finally:
                     self._guard_busy = False
-                with contextlib.suppress(RuntimeError):  # loop already closed
-                    loop.call_soon_threadsafe(functools.partial(self._emit, "loop_guard", age=age, result=str(result)))
+                with contextlib.suppress(RuntimeError):
+                    loop.call_soon_threadsafe(functools.partial(self._emit, "loop_guard_stop", result=str(result)))
                 return
 
         threading.Thread(target=run, name="link:loop_guard", daemon=True).start()

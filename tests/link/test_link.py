@@ -303,6 +303,33 @@ def test_loop_guard_hands_over_when_the_event_loop_stalls(sim: SimPX4, cfg: Conf
     run(body, 50)
 
 
+@pytest.mark.timeout(60)
+def test_loop_guard_covers_a_stall_while_the_switch_to_offboard_is_pending(sim: SimPX4, cfg: Config) -> None:
+    """The loop stalls after the first setpoint went out but before PX4's 1 Hz heartbeat confirmed OFFBOARD:
+    MAVSDK already resends that setpoint and PX4 flies it, so the guard must watch from the first setpoint on."""
+    import time
+
+    async def body() -> None:
+        async with await flying_link(sim, cfg) as link:
+            start = asyncio.create_task(link.start_offboard(setpoint(link)))
+            for _ in range(250):  # the loop must run for the switch to go out
+                if sim.wait_event("mode:OFFBOARD:command", 0.0) is not None:
+                    break
+                await asyncio.sleep(0.02)
+            assert sim.wait_event("mode:OFFBOARD:command", 0.0) is not None  # the switch is under way
+            assert not start.done()  # ... and not confirmed yet (the heartbeat comes at 1 Hz)
+            t_stall = sim.time
+            time.sleep(2.0 * cfg.safety.perception_stall_timeout + 1.5)  # the whole loop is stuck here
+            assert sim.wait_event("mode:HOLD:command", 0.0, since=t_stall) is not None  # while still blocked
+            with pytest.raises(OffboardLost, match="loop guard"):
+                await start
+            kinds = [e[1] for e in link.events]
+            assert "loop_guard" in kinds and "offboard_started" not in kinds
+            assert sim.mode == "HOLD"
+
+    run(body, 50)
+
+
 @pytest.mark.timeout(30)
 def test_failed_preflight_gives_not_healthy_naming_the_check(sim: SimPX4, cfg: Config) -> None:
     from companion.app.link import NotHealthy
