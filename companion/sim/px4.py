@@ -78,6 +78,7 @@ from companion.frames import (
     euler_ned_deg_from_R,
     flu_to_frd,
 )
+from companion.netports import free_udp_port
 from companion.sim.dynamics import G, QuadParams, Quadrotor, QuadState, matrix_to_quat, quat_to_matrix
 from companion.sim.sensors import Sensors, Wind
 
@@ -155,13 +156,6 @@ def _mav2_frame(seq: int, sysid: int, compid: int, msgid: int, crc_extra: int, p
     crc = x25crc(hdr[1:] + body)
     crc.accumulate([crc_extra])
     return hdr + body + struct.pack("<H", crc.crc)
-
-
-def _free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that is free now (for mavsdk to listen on; the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 def _nan_to(x: float, default: float) -> float:
@@ -344,7 +338,7 @@ class SimPX4:
         if not 0 <= self._port_req <= 65535:
             raise ValueError(f"SimPX4: port {self._port_req} is not a UDP port (0-65535)")
         if self._remote_req is not None:
-            port = int(self._remote_req) or _free_udp_port()
+            port = int(self._remote_req) or free_udp_port()
             self._remote = ("127.0.0.1", port)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         # No SO_REUSEADDR: the port is ours alone (MAVSDK's udpin listeners set it and could share).

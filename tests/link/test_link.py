@@ -368,12 +368,9 @@ def test_unusable_url_is_connect_failed(cfg: Config) -> None:
 @pytest.mark.timeout(30)
 def test_listening_mavsdk_finds_a_sim_that_sends_to_it(cfg: Config) -> None:
     """The default link.url is udpin:// (mavsdk listens, as for PX4 SITL): remote_port makes the sim send there."""
-    import socket
+    from companion.netports import free_udp_port
 
-    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    probe.bind(("127.0.0.1", 0))
-    listen_port = probe.getsockname()[1]
-    probe.close()  # free again for mavsdk (a tiny race with other processes, acceptable in a test)
+    listen_port = free_udp_port()  # for mavsdk to bind
     with SimPX4(cfg, remote_port=listen_port) as sim:
         async def body() -> None:
             async with VehicleLink.from_config(cfg) as link:

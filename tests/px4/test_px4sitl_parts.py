@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from companion.config import load_config
 from companion.configbase import ConfigError
+from companion.netports import free_udp_port
 from companion.px4sitl.launcher import PX4Sitl, PX4SitlError, claim_instance, client_bin, find_sitl_dir, instance_ports
 from companion.px4sitl.truth import SihTruth, hil_to_ned
 
@@ -38,16 +39,8 @@ def test_flat_earth_matches_a_spherical_distance() -> None:
     assert abs(2 * 6371000.0 * math.asin(math.sqrt(a)) - 50.0) < 0.05
 
 
-def _free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def test_truth_reader_over_real_udp_interpolates_and_extrapolates() -> None:
-    port = _free_udp_port()
+    port = free_udp_port()
     truth = SihTruth(f"udpin:127.0.0.1:{port}", ORIGIN)
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
@@ -83,7 +76,7 @@ def test_truth_reader_over_real_udp_interpolates_and_extrapolates() -> None:
 
 
 def test_truth_origin_defaults_to_the_first_message() -> None:
-    port = _free_udp_port()
+    port = free_udp_port()
     truth = SihTruth(f"udpin:127.0.0.1:{port}")
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
