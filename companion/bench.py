@@ -90,7 +90,10 @@ def run(args: argparse.Namespace) -> int:
             results[key] = {"error": f"not available: {e}"}
             print(f"{key}: not available ({e})", file=sys.stderr)
             continue
-        r = fn(quick=args.quick) if "quick" in fn.__code__.co_varnames else fn()
+        # Every section times the configured system (--config / --set), not the defaults.
+        accepts = fn.__code__.co_varnames[:fn.__code__.co_argcount]
+        kwargs = {k: v for k, v in (("quick", args.quick), ("cfg", cfg), ("pc", cfg.perception)) if k in accepts}
+        r = fn(**kwargs)
         # Each owner returns {key: value-or-dict, ...}; keep its whole dict under the section key.
         results[key] = r.get(key, r) if isinstance(r, dict) and len(r) == 1 else r
         print(f"{key}: {json.dumps(results[key])}")

@@ -17,7 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from perception.detector import SHIPPED_MODEL, Detector
+from perception.detector import Detector
 from perception.render import TRAIN_STYLE, Gate, PinholeCamera, make_background, render_gate_frame
 from perception.tracker import iou
 from perception.types import BoundingBox
@@ -76,26 +76,30 @@ def _run(detector: Detector, frames: list, pc: Any) -> dict[str, Any]:
 
 
 def bench_perception(frames: int = 90, model: str | Path | None = None, seed: int = 0,
-                     backends: tuple[str, ...] = ("onnxruntime", "cv2")) -> dict[str, Any]:
+                     backends: tuple[str, ...] = ("onnxruntime", "cv2"), pc: Any = None) -> dict[str, Any]:
     """Per-frame times (median, p95, ms) at 640x480 on one core, for each backend.
 
-    The headline figures are those of the first backend that loads: onnxruntime, which the default
-    ``perception.backend: auto`` uses when installed; cv2.dnn otherwise.
+    ``pc`` is the perception config to time (model, input size, confidence, tracker rules: what ``--set
+    perception.*`` chose), the defaults without one; ``model`` overrides its model. The headline figures are
+    those of the first backend that loads: onnxruntime, which the default ``perception.backend: auto`` uses
+    when installed; cv2.dnn otherwise.
     """
     from companion.config_perception import PerceptionConfig
 
     cv2.setNumThreads(1)
-    pc = PerceptionConfig()
-    path = Path(model) if model else SHIPPED_MODEL
+    pc = PerceptionConfig() if pc is None else pc
+    if model is not None:
+        pc = pc.model_copy(update={"model": str(model)})
     seq = sweep_frames(frames, seed)
-    res: dict[str, Any] = {"frames": frames, "width": 640, "height": 480, "threads": 1, "model": str(path),
+    res: dict[str, Any] = {"frames": frames, "width": 640, "height": 480, "threads": 1,
                            "tracker": "detect+kalman", "backends": {}}
     for be in backends:
         try:
-            det = Detector(path, pc.class_name, conf=pc.confidence, nms_iou=pc.nms_iou, backend=be, threads=1)
+            det = Detector.from_config(pc.model_copy(update={"backend": be, "threads": 1}))
         except ValueError as e:  # onnxruntime not installed: report, don't fail
             res["backends"][be] = {"error": str(e)}
             continue
+        res["model"] = str(det.path)
         for _, img, _ in seq[:5]:  # warm-up: first inferences allocate
             det.detect(img)
         res["input_size"] = list(det.input_hw)

@@ -7,7 +7,7 @@ schedule all follow from them); ``--minutes`` instead times the first steps and 
 count from the budget (printed, and recorded in the JSON, for a rerun with ``--steps``).
 
     .venv/bin/python tools/train_detector.py --minutes 30 --seed 1
-    .venv/bin/python tools/train_detector.py --eval-only      # re-measure the shipped model
+    .venv/bin/python tools/train_detector.py --eval-only      # re-measure the shipped model (prints only)
     .venv/bin/python tools/train_detector.py --world real --init-onnx perception/models/gate_detector.onnx \
         --steps 3000 --threads 2 --out DIR                     # real-world frames (perception.realworld)
     .venv/bin/python tools/train_detector.py --finetune DATASET --steps 1500   # your labelled frames
@@ -457,6 +457,7 @@ def main() -> int:
     p.add_argument("--export-checkpoint", type=Path, default=None,
                    help="export this .pt (from a run given by --seed/--steps/--stop-at) instead of training")
     args = p.parse_args()
+    out_given = args.out is not None
     if args.out is None:  # a fine-tune never overwrites the shipped model by default
         args.out = Path("finetuned-detector") if args.finetune else ROOT / "perception" / "models"
     args.out.mkdir(parents=True, exist_ok=True)
@@ -480,7 +481,8 @@ def main() -> int:
         "heldout_frames": evaluate(onnx_path, args.eval_frames, 10_000_019, TRAIN_STYLE),
         "heldout_style": evaluate(onnx_path, args.eval_frames, 20_000_033, HELDOUT_STYLE),
     }
-    meta_path.write_text(json.dumps(meta, indent=2) + "\n")
+    if not (args.eval_only and not out_given):  # a re-measurement never rewrites the shipped record
+        meta_path.write_text(json.dumps(meta, indent=2) + "\n")
     print(json.dumps(meta["metrics"], indent=2))
     return 0
 

@@ -63,3 +63,18 @@ def test_bench_reports_all_figures() -> None:
             assert be["pipeline_stats"]["frames"] == 20 and be["pipeline_stats"]["detector_runs"] == 20
             assert be["iou50_fraction"] > 0.8  # the timed work found the gate
     assert "cv2" in res["backends"] and "error" not in res["backends"]["cv2"]
+
+
+def test_bench_times_the_configured_model(tmp_path) -> None:
+    """`companion bench --set perception.model=...` times that model, not the default."""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "bench.json"
+    subprocess.run([sys.executable, "-m", "companion.cli", "bench", "--only", "pipeline_ms_per_frame",
+                    "--set", "perception.model=gate_detector_real.onnx", "--json", str(out)],
+                   check=True, capture_output=True, timeout=240)
+    res = json.loads(out.read_text())["pipeline_ms_per_frame"]
+    assert res["model"].endswith("perception/models/gate_detector_real.onnx")
+    assert res["pipeline_ms_per_frame"]["median"] > 0
