@@ -909,8 +909,6 @@ class VehicleLink:
 
     async def start_offboard(self, first_setpoint: SetpointLike, timeout: float | None = None) -> None:
         """Stream ``first_setpoint``, switch PX4 to OFFBOARD and wait until the vehicle reports it."""
-        from mavsdk.asyncio.plugins.offboard import OffboardError
-
         self.check_link()
         timeout = self.cfg.command_timeout if timeout is None else timeout
         sp = self._validated(first_setpoint)
@@ -928,12 +926,8 @@ class VehicleLink:
             await asyncio.sleep(0.2)  # PX4 wants a setpoint stream before it accepts OFFBOARD
             self._status_text = None
             n0 = self._mode_reports
-            try:
-                await self._call("start offboard", self._offboard.start, timeout)
-            except OffboardError as e:
-                if e.result.name == "TIMEOUT":
-                    raise CommandTimeout(f"start offboard: no answer from the autopilot{self._why()}") from None
-                raise OffboardDenied(f"offboard refused: {e.result.name}{self._why()}") from None
+            await self._offboard_call("start offboard", self._offboard.start, timeout, OffboardDenied,
+                                      "offboard refused")
             await self._wait_until(lambda: (self._mode_reports > n0 and self._flight_mode == "OFFBOARD")
                                    or self._offboard_end_reason is not None,
                                    max(timeout, self.cfg.mode_timeout),
@@ -951,6 +945,18 @@ class VehicleLink:
         self._offboard_tasks = [asyncio.create_task(self._stream(), name="link:setpoint_stream"),
                                 asyncio.create_task(self._watchdog(), name="link:watchdog")]
         self._emit("offboard_started")
+
+    async def _offboard_call(self, what: str, fn: Callable[[], Awaitable[Any]], timeout: float,
+                             refused: type[LinkError], refused_what: str) -> None:
+        """One offboard plugin call: its TIMEOUT is CommandTimeout, any other refusal ``refused``."""
+        from mavsdk.asyncio.plugins.offboard import OffboardError
+
+        try:
+            await self._call(what, fn, timeout)
+        except OffboardError as e:
+            if e.result.name == "TIMEOUT":
+                raise CommandTimeout(f"{what}: no answer from the autopilot{self._why()}") from None
+            raise refused(f"{refused_what}: {e.result.name}{self._why()}") from None
 
     async def _beat_while_switching(self) -> None:
         """While the switch is pending no fresh setpoint is due; the guard then watches the loop itself."""
@@ -1069,8 +1075,6 @@ class VehicleLink:
 
     async def stop_offboard(self, timeout: float | None = None) -> None:
         """Leave OFFBOARD for HOLD (only if the vehicle is still in OFFBOARD: never override the pilot)."""
-        from mavsdk.asyncio.plugins.offboard import OffboardError
-
         timeout = self.cfg.command_timeout if timeout is None else timeout
         self._stop_offboard_tasks("stopped by the app")
         requested, self._offboard_requested = self._offboard_requested, False
@@ -1080,12 +1084,8 @@ class VehicleLink:
             return
         self.check_link()
         n0 = self._mode_reports
-        try:
-            await self._call("stop offboard", self._offboard.stop, timeout)
-        except OffboardError as e:
-            if e.result.name == "TIMEOUT":
-                raise CommandTimeout(f"stop offboard: no answer from the autopilot{self._why()}") from None
-            raise CommandDenied(f"stop offboard refused: {e.result.name}{self._why()}") from None
+        await self._offboard_call("stop offboard", self._offboard.stop, timeout, CommandDenied,
+                                  "stop offboard refused")
         self._emit("offboard_stopped")
         await self.wait_mode("HOLD", max(timeout, self.cfg.mode_timeout), after=n0)
 
