@@ -257,6 +257,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     thrust_cmd = min(1.0, scn.state0.f_th * params.hover_thrust / 9.81)
     pending: deque = deque()  # (arrival time, capture time, box)
     traj = Trajectory() if record else None
+    # The logged barometer's noise has a stream of its own: recording a run must not change the flight (it drew
+    # from the sensors' stream, which shifted the attitude noise: recorded plots showed another flight).
+    rng_rec = np.random.default_rng(np.random.SeedSequence([sim.seed, spec.seed, 0x0BA20])) if record else None
     last_seen = 0.0
     frames = frames_with_box = 0
     top_speed = 0.0
@@ -349,7 +352,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
             # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
             traj.accel.append(imu.accel)
-            traj.baro.append(sensors.baro_altitude(float(s.p[2])))
+            traj.baro.append(sensors.baro_altitude(float(s.p[2]), rng_rec))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
         if hover is not None:  # in-flight hover-thrust estimate (companion/hover.py), hover.estimate=true
             est, imu = hover

@@ -65,8 +65,9 @@ class Sensors:
         x, y, z, w = qmul(qmul(_Q_P, q), _Q_F)
         return np.array([w, x, y, z]) if w >= 0 else np.array([-w, -x, -y, -z])
 
-    def baro_altitude(self, z_true: float) -> float:
-        return z_true + self.baro_bias + float(self.rng.normal(0.0, self.cfg.baro_noise))
+    def baro_altitude(self, z_true: float, rng: np.random.Generator | None = None) -> float:
+        """``rng``: another stream for the white noise (the run's bias stays), e.g. for a log only."""
+        return z_true + self.baro_bias + float((self.rng if rng is None else rng).normal(0.0, self.cfg.baro_noise))
 
 
 class Wind:

@@ -246,3 +246,17 @@ def test_per_run_setpoint_metrics_match_the_recorded_setpoints():
     d = r.as_dict(RADII)
     assert d["max_tilt_deg"] == r.max_tilt_deg and d["roll_osc_amp_deg"] == r.roll_osc.amplitude_deg
     assert 0.0 <= d["max_tilt_deg"] < 90.0 and d["roll_osc_rms_rate_dps"] >= 0.0
+
+
+@pytest.mark.parametrize("motion,seed", [("stationary", 3), ("planar", 3001), ("knot", 7)])
+def test_recording_a_run_does_not_change_it(motion, seed):
+    """Plots come from recorded runs and the suites from unrecorded ones: they must be the same flight (the
+    logged barometer once drew from the sensors' noise stream and shifted every later attitude draw)."""
+    cfg = Config()
+    spec = RunSpec(motion, seed=seed)
+    plain, rec = run_once(cfg, spec), run_once(cfg, spec, record=True)
+    assert rec.trajectory is not None and len(rec.trajectory.baro) == rec.frames
+    assert plain.outcome.as_dict([1.0]) == rec.outcome.as_dict([1.0])
+    assert (plain.frames, plain.frames_with_box, plain.engagement) == (rec.frames, rec.frames_with_box,
+                                                                        rec.engagement)
+    assert plain.roll_osc == rec.roll_osc
