@@ -92,7 +92,7 @@ def bench_perception(frames: int = 90, model: str | Path | None = None, seed: in
         pc = pc.model_copy(update={"model": str(model)})
     seq = sweep_frames(frames, seed)
     res: dict[str, Any] = {"frames": frames, "width": 640, "height": 480, "threads": 1,
-                           "tracker": "detect+kalman", "backends": {}}
+                           "model": str(pc.model or "gate_detector.onnx"), "tracker": "detect+kalman", "backends": {}}
     for be in backends:
         try:
             det = Detector.from_config(pc.model_copy(update={"backend": be, "threads": 1}))

@@ -849,12 +849,7 @@ class VehicleLink:
         self._stop_offboard_tasks(f"{what} requested")
         self._offboard_requested = False
         n0 = self._mode_reports
-        try:
-            await self._call(what, fn, timeout)
-        except ActionError as e:
-            if e.result.name == "TIMEOUT":
-                raise CommandTimeout(f"{what}: no answer from the autopilot{self._why()}") from None
-            raise CommandDenied(f"{what} refused by the autopilot: {e.result.name}{self._why()}") from None
+        await self._mapped_call(what, fn, timeout, ActionError, CommandDenied, f"{what} refused by the autopilot")
         self._emit(what)
         await self.wait_mode(mode, max(timeout, self.cfg.mode_timeout), after=n0)
 
@@ -909,6 +904,8 @@ class VehicleLink:
 
     async def start_offboard(self, first_setpoint: SetpointLike, timeout: float | None = None) -> None:
         """Stream ``first_setpoint``, switch PX4 to OFFBOARD and wait until the vehicle reports it."""
+        from mavsdk.asyncio.plugins.offboard import OffboardError
+
         self.check_link()
         timeout = self.cfg.command_timeout if timeout is None else timeout
         sp = self._validated(first_setpoint)
@@ -926,8 +923,8 @@ class VehicleLink:
             await asyncio.sleep(0.2)  # PX4 wants a setpoint stream before it accepts OFFBOARD
             self._status_text = None
             n0 = self._mode_reports
-            await self._offboard_call("start offboard", self._offboard.start, timeout, OffboardDenied,
-                                      "offboard refused")
+            await self._mapped_call("start offboard", self._offboard.start, timeout, OffboardError, OffboardDenied,
+                                    "offboard refused")
             await self._wait_until(lambda: (self._mode_reports > n0 and self._flight_mode == "OFFBOARD")
                                    or self._offboard_end_reason is not None,
                                    max(timeout, self.cfg.mode_timeout),
@@ -946,17 +943,17 @@ class VehicleLink:
                                 asyncio.create_task(self._watchdog(), name="link:watchdog")]
         self._emit("offboard_started")
 
-    async def _offboard_call(self, what: str, fn: Callable[[], Awaitable[Any]], timeout: float,
-                             refused: type[LinkError], refused_what: str) -> None:
-        """One offboard plugin call: its TIMEOUT is CommandTimeout, any other refusal ``refused``."""
-        from mavsdk.asyncio.plugins.offboard import OffboardError
-
+    async def _mapped_call(self, what: str, fn: Callable[[], Awaitable[Any]], timeout: float,
+                           error: type[Exception], refused: type[LinkError], refused_what: str) -> None:
+        """One mavsdk plugin call whose failure is ``error`` (ActionError, OffboardError): its TIMEOUT result is
+        CommandTimeout, any other result ``refused`` with the autopilot's reason."""
         try:
             await self._call(what, fn, timeout)
-        except OffboardError as e:
-            if e.result.name == "TIMEOUT":
+        except error as e:
+            result = e.result.name  # type: ignore[attr-defined]
+            if result == "TIMEOUT":
                 raise CommandTimeout(f"{what}: no answer from the autopilot{self._why()}") from None
-            raise refused(f"{refused_what}: {e.result.name}{self._why()}") from None
+            raise refused(f"{refused_what}: {result}{self._why()}") from None
 
     async def _beat_while_switching(self) -> None:
         """While the switch is pending no fresh setpoint is due; the guard then watches the loop itself."""
@@ -1075,6 +1072,8 @@ class VehicleLink:
 
     async def stop_offboard(self, timeout: float | None = None) -> None:
         """Leave OFFBOARD for HOLD (only if the vehicle is still in OFFBOARD: never override the pilot)."""
+        from mavsdk.asyncio.plugins.offboard import OffboardError
+
         timeout = self.cfg.command_timeout if timeout is None else timeout
         self._stop_offboard_tasks("stopped by the app")
         requested, self._offboard_requested = self._offboard_requested, False
@@ -1084,8 +1083,8 @@ class VehicleLink:
             return
         self.check_link()
         n0 = self._mode_reports
-        await self._offboard_call("stop offboard", self._offboard.stop, timeout, CommandDenied,
-                                  "stop offboard refused")
+        await self._mapped_call("stop offboard", self._offboard.stop, timeout, OffboardError, CommandDenied,
+                                "stop offboard refused")
         self._emit("offboard_stopped")
         await self.wait_mode("HOLD", max(timeout, self.cfg.mode_timeout), after=n0)
 
