@@ -25,7 +25,9 @@ def test_flight_through_a_stationary_gate(px4: PX4Sitl, log_dir: Path) -> None:
     assert f.config["px4"]["truth_url"] == px4.truth_url
     truth = f["truth"]
     assert abs(truth["d"][0]) < 0.1, truth["d"][0]
-    assert -truth["d"].min() > 5.0  # it did fly (take-off to 6 m)
+    # It did fly: PX4 takes off to 6 m on the EKF's height, which is 1-3 m off SIH's truth from the ground on
+    # (../shared/px4-sitl/README.md; CI saw a truth peak of 4.7 m in a flight through the gate's centre).
+    assert -truth["d"].min() > 6.0 - 3.0
     cross = gate_crossings(f)
     assert len(cross) == 1, cross
     assert cross[0].through, f"crossed {cross[0].d_center:.2f} m from the centre (radius {cross[0].radius} m)"
