@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import Field, ValidationError, model_validator
 from scipy.spatial.transform import Rotation
 
-from companion.app.config import AppConfig, LinkConfig, LogConfig, SafetyConfig
+from companion.config_app import AppConfig, LinkConfig, LogConfig, SafetyConfig
 from companion.config_perception import PerceptionConfig
 from companion.configbase import (
     ConfigError,

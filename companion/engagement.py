@@ -39,17 +39,17 @@ from typing import TYPE_CHECKING, Literal, Protocol
 import numpy as np
 
 from companion import guidance
-from companion.app.safety import CloseDetector, SafetyLimits
-from companion.app.states import Reason
 from companion.frames import P_NED_ENU, R_from_euler_ned_deg, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import Setpoint
+from companion.limits import CloseDetector, SafetyLimits
+from companion.reasons import Reason
 from companion.targetlock import LockParams, TargetLock
 from perception.los import CameraModel
 from perception.types import BoundingBox
 
 if TYPE_CHECKING:
-    from companion.app.config import AppConfig, SafetyConfig
     from companion.config import Config
+    from companion.config_app import AppConfig, SafetyConfig
 
 
 class Phase(enum.Enum):

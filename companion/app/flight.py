@@ -30,13 +30,13 @@ from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
 from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
-from companion.app.safety import Abort
 from companion.app.states import Reason, State, StateMachine, Transition
 from companion.controller import ControlOutput, PNController
 from companion.engagement import Decision, Engagement, EngagementParams, Phase
 from companion.flightlog import FlightLog
 from companion.frames import euler_ned_deg_from_R
 from companion.hover import HoverThrustEstimator, use_hover_thrust
+from companion.limits import Abort
 
 if TYPE_CHECKING:
     from companion.config import Config

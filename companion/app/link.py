@@ -72,8 +72,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from companion.app.config import LinkConfig
 from companion.app.envelope import SetpointEnvelope
+from companion.config_app import LinkConfig
 from companion.frames import R_from_quat_wxyz
 
 
@@ -490,8 +490,8 @@ class VehicleLink:
         from mavsdk.asyncio.plugins.param import ParamAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
-        from companion.app.config import all_interfaces_reason
         from companion.app.px4events import EventDecoder
+        from companion.config_app import all_interfaces_reason
 
         url = url or self.cfg.url
         timeout = self.cfg.connect_timeout if timeout is None else timeout

@@ -25,12 +25,12 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from companion.app.states import Reason
 from companion.configbase import deep_merge
 from companion.engagement import Engagement, Phase
 from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
 from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
+from companion.reasons import Reason
 from companion.sim.camera import GeometricCamera, detector_noise
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
 from companion.sim.gates import MOTIONS, MotionKind

@@ -9,10 +9,10 @@ import socket
 import numpy as np
 import pytest
 
-from companion.app.config import AppConfig, SafetyConfig
 from companion.app.notify import Notifier
-from companion.app.safety import CloseDetector, SafetyLimits, mode_is_pilot
 from companion.app.states import SAFE_STATES, TRANSITIONS, IllegalTransition, Reason, State, StateMachine
+from companion.config_app import AppConfig, SafetyConfig
+from companion.limits import CloseDetector, SafetyLimits, mode_is_pilot
 from perception.types import BoundingBox
 
 pytestmark = pytest.mark.timeout(30)

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.app.config import AppConfig, SafetyConfig
-from companion.app.states import Reason
+from companion.config_app import AppConfig, SafetyConfig
+from companion.reasons import Reason
 from perception.types import BoundingBox
 
 
