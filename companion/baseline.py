@@ -34,6 +34,7 @@ class BaselineOutput:
     setpoint: guidance.Setpoint
     mode: str  # "pn" box used, "coast" no box (last LOS, no PN term), "hover" no LOS yet
     a_cmd: np.ndarray  # commanded acceleration, world ENU, m/s^2 (before the tilt limit)
+    los_enu: np.ndarray | None = None  # the filtered LOS the command was built on, world ENU (None: no LOS yet)
 
 
 class BaselinePN:
@@ -83,7 +84,7 @@ class BaselinePN:
             return BaselineOutput(t, sp, "hover", np.zeros(3))
         los = self._l_prev
         a_cmd = a_pn + self.k_s * (self.speed - float(v_enu @ los)) * los
-        return BaselineOutput(t, self._attitude(a_cmd, los), mode, a_cmd)
+        return BaselineOutput(t, self._attitude(a_cmd, los), mode, a_cmd, los.copy())
 
     def _attitude(self, a_cmd: np.ndarray, los: np.ndarray) -> guidance.Setpoint:
         """PX4-style acceleration -> thrust vector with tilt limit; body x yawed at the LOS."""

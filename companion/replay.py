@@ -145,7 +145,7 @@ def replay(
 
     from companion.app.record import Recorder, RecordingReader, is_recording
     from companion.controller import PNController
-    from companion.engagement import Engagement
+    from companion.core import FlightCore, FrameInput
     from companion.frames import R_from_quat_wxyz
     from perception.los import CameraModel, los_world
     from perception.pipeline import Pipeline
@@ -176,7 +176,7 @@ def replay(
     model = CameraModel.from_config(cfg.camera)
     pipe = Pipeline.from_config(cfg)
     ctrl = PNController.from_config(cfg)  # the controller alone on every frame (what this frame's box asks for)
-    eng = Engagement.from_config(cfg, PNController.from_config(cfg))  # the app's decisions (own controller)
+    core = FlightCore.from_config(cfg)  # the app's decisions (its own controller)
     ended = ""
     writer = cv2.VideoWriter(str(out_dir / "annotated.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
     if not writer.isOpened():
@@ -199,7 +199,9 @@ def replay(
                 rec.add(k, t, frame, q)
             box = pipe.process(frame, t)
             co = ctrl.step(t, box, q)
-            d = eng.step(t, box, q, None)  # no barometer in a video: the altitude floor is not checked
+            # No barometer, accelerometer or processing time in a video: the altitude floor is not checked, the
+            # closing speed runs on its prior, frames have no age.
+            d = core.step(FrameInput(t, box, q)).decision
             if d.changed and d.phase.done:
                 ended = f"{d.phase.value} ({d.reason.name if d.reason else ''}): {d.why}"
             asp = d.setpoint
@@ -242,7 +244,8 @@ def replay(
     summary = {
         "video": str(video), "frames": len(rows), "fps": fps, "boxes": sum(r["box"] for r in rows),
         "attitude": str(log) if log is not None else "level", "out": str(out_dir),
-        "engagement": {"state": eng.phase.value, "end": ended, "passes": [g.as_dict() for g in eng.passes]},
+        "engagement": {"state": core.phase.value, "end": ended,
+                       "passes": [g.as_dict() for g in core.engagement.passes]},
         "annotated": str(out_dir / "annotated.mp4"), "csv": str(out_dir / "replay.csv"),
         "plot": str(out_dir / "replay.png"), "pipeline": pipe.stats.summary(),
     }

@@ -30,12 +30,14 @@ from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
 from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
+from companion.app.perframe import frame_input, log_step
+from companion.app.perframe import log_detection as log_detection
 from companion.app.states import Reason, State, StateMachine, Transition
 from companion.controller import ControlOutput, PNController
-from companion.engagement import Decision, Engagement, EngagementParams, Phase
+from companion.core import CoreStep, FlightCore
+from companion.engagement import Phase
 from companion.flightlog import FlightLog
 from companion.frames import euler_ned_deg_from_R
-from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.limits import Abort
 
 if TYPE_CHECKING:
@@ -122,7 +124,7 @@ class FlightApp:
         self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=sm_err)
         self.ctrl = PNController.from_config(cfg)
         self.width, self.height = cfg.camera.width, cfg.camera.height
-        self.engagement: Engagement | None = None  # made when the frame loop starts (the hover thrust is known)
+        self.core: FlightCore | None = None  # made when the frame loop starts (the hover thrust is known)
         self.stats = FlightStats()
         self._fault: Abort | None = None
         self._seq: asyncio.Task[None] | None = None
@@ -132,8 +134,6 @@ class FlightApp:
         self._connected = False
         self._last_out: ControlOutput | None = None
         self._deadman: LoopDeadman | None = None
-        self._hover: HoverThrustEstimator | None = None  # hover.estimate (companion/hover.py)
-        self._hover_u: float | None = None
         self._hover_logged: float | None = None
 
     # ------------------------------------------------------------------------------ public
@@ -235,7 +235,7 @@ class FlightApp:
             "exit_code": int(self.sm.outcome) if self.sm.outcome is not None else None,
             "detail": last.reason if last else "",
             "gates_passed": self.stats.gates_passed,
-            "passes": [g.as_dict() for g in self.engagement.passes] if self.engagement is not None else [],
+            "passes": [g.as_dict() for g in self.core.engagement.passes] if self.core is not None else [],
             "truth": self._truth_summary(),
             "verdict": self._verdict,
             "frames": self.stats.frames,
@@ -348,19 +348,16 @@ class FlightApp:
             await asyncio.sleep(0.1)
 
     async def _fly(self) -> None:
-        """The frame loop: each frame's box goes to the engagement core (companion/engagement.py), which
-        decides ACQUIRE -> ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK, or an abort; here only I/O:
-        camera, perception, the setpoint to PX4, the state machine and the log."""
-        p = self.ctrl.p
-        params = EngagementParams.from_config(self.cfg, hover_thrust=p.hover_thrust, f_min=p.guidance.f_min,
-                                              f_max=p.guidance.f_max)
-        self.engagement = eng = Engagement.from_config(self.cfg, self.ctrl, params)
+        """The frame loop: each frame's box goes to the flight core (companion/core.py), which decides ACQUIRE ->
+        ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK, or an abort; here only I/O: camera, perception,
+        the setpoint to PX4, the state machine and the log."""
+        self.core = FlightCore.from_config(self.cfg, controller=self.ctrl)  # with the autopilot's hover thrust
         try:
-            await self._frame_loop(eng)
+            await self._frame_loop(self.core)
         finally:
             await self._cancel_offboard_start()
 
-    async def _frame_loop(self, eng: Engagement) -> None:
+    async def _frame_loop(self, core: FlightCore) -> None:
         while True:
             self._check_fault()
             frame = await self.camera.read()
@@ -369,22 +366,30 @@ class FlightApp:
             self._check_fault()
             valid = box is not None and box.is_valid(self.width, self.height)
             self.stats.frames += 1
-            self._log_detection(frame, box, valid)
+            log_detection(self.log, frame, box, valid)
             if self._switching_to_offboard():
                 continue  # perceived and logged (the tracker keeps the gate); PX4 does not fly our setpoints yet
-            imu = self.link.imu  # the newest accelerometer sample (50 Hz) for the controller's closing speed
-            d = eng.step(frame.t, box, self._attitude_at(frame.t), self._baro_rel(),
-                         accel_frd=imu.accel_frd if imu is not None else None, t_now=t_avail)
+            inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
+            if inp is None:
+                raise _Tripped(Abort(Reason.TELEMETRY_INVALID, "no attitude from the autopilot for a frame"))
+            step = core.step(inp)
+            d = step.decision
             if d.control is not None:
                 self._last_out = d.control
             for ev in d.events:
                 self.log.event(ev)
-            self.stats.gates_passed = eng.passes_confirmed
-            if await self._apply(frame, d, t_avail):
+            self.stats.gates_passed = step.passes_confirmed
+            if step.reset_tracker:
+                reset = getattr(self.perception, "reset", None)
+                if reset is not None:
+                    reset()  # the tracker must not hold on to (or coast) the gate we just passed
+            self._note_hover(step)
+            if await self._apply(frame, step, t_avail):
                 return
 
-    async def _apply(self, frame: Frame, d: Decision, t_avail: float) -> bool:
+    async def _apply(self, frame: Frame, step: CoreStep, t_avail: float) -> bool:
         """Carry out one decision; True when the flight's normal end has been reached."""
+        d = step.decision
         if d.phase is Phase.ACQUIRE:
             return False  # PX4 holds; nothing to send
         if d.phase is Phase.LAND:
@@ -401,11 +406,6 @@ class FlightApp:
         first = d.previous is Phase.ACQUIRE
         if d.changed:
             self.sm.go(State(d.phase.value), d.why)
-            if d.phase is Phase.RECOVER:
-                reset = getattr(self.perception, "reset", None)
-                if reset is not None:
-                    reset()  # the tracker must not hold on to (or coast) the gate we just passed
-        self._hover_update(d.setpoint.thrust)
         if first:
             # PX4 accepts OFFBOARD only while setpoints arrive: the link sends this one first, then waits until
             # PX4 reports OFFBOARD (OffboardDenied otherwise), 0.3-0.9 s on PX4 1.15. That wait runs beside the
@@ -416,7 +416,7 @@ class FlightApp:
                                                        name="app:start_offboard")
             self._last_setpoint = self.clock()
             # Logged, but not a latency sample: the mode switch is still under way.
-            self._log_control(frame, d, (self._last_setpoint - t_avail) * 1e3)
+            self._log_control(frame, step, (self._last_setpoint - t_avail) * 1e3)
             return False
         await self.link.set_setpoint(d.setpoint)
         t_sent = self.clock()
@@ -424,7 +424,7 @@ class FlightApp:
         self.stats.setpoints += 1
         lat_ms = (t_sent - t_avail) * 1e3
         self.stats.latencies_ms.append(lat_ms)
-        self._log_control(frame, d, lat_ms)
+        self._log_control(frame, step, lat_ms)
         return False
 
     def _switching_to_offboard(self) -> bool:
@@ -454,41 +454,25 @@ class FlightApp:
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await task
 
-    def _outcome(self, d: Decision) -> tuple[Reason, str]:
+    def _outcome(self, d: Any) -> tuple[Reason, str]:
         """The normal end's reason: what the engagement claimed, checked against ground truth where it exists."""
         judge = self.judge
         truth = judge.results() if judge is not None and judge.has_truth else None
-        reason, line = verdict(self.engagement.passes, truth)
+        assert self.core is not None
+        reason, line = verdict(self.core.engagement.passes, truth)
         self._verdict = line
         self.log.event(f"outcome {reason.name}: {line}", "info" if reason is Reason.OK else "error")
         return reason, f"{d.why}; {line}"
 
-    def _attitude_at(self, t: float) -> np.ndarray:
-        """PX4's attitude estimate (IMU; NED/FRD wxyz) at a frame's capture time, not at its processing
-        time: the box must be rotated to the world with the attitude the camera had when it saw it."""
-        q = self.link.attitude_history.at(t)
-        return q if q is not None else self.link.attitude.q_wxyz
-
-    def _hover_update(self, thrust: float) -> None:
-        """hover.estimate: the IMU's specific force against the thrust we commanded since the last setpoint
-        (companion/hover.py); the controller flies with the estimate from then on."""
-        if not self.cfg.hover.estimate:
-            return
-        if self._hover is None:
-            self._hover = HoverThrustEstimator(self.ctrl.p.hover_thrust, self.cfg.hover)
-        imu, h = self.link.imu, self._hover
-        if imu is not None and self._hover_u is not None:
-            e = h.update(imu.t_rx, self._hover_u, -float(imu.accel_frd[2]))  # FRD: the thrust axis is -z
-            if e is not None:
-                use_hover_thrust(self.ctrl, e.hover_thrust, self.cfg.airframe.thrust_to_weight,
-                                 getattr(self, "engagement", None))  # the pass and recovery too
-                self.log.write("hover", u_cmd=self._hover_u, a_up=-float(imu.accel_frd[2]),
-                               hover_thrust=e.hover_thrust, std=e.std, samples=e.samples)
-                if self._hover_logged is None or abs(e.hover_thrust - self._hover_logged) > 0.01:
-                    self._hover_logged = e.hover_thrust
-                    self.log.event(f"hover thrust {e.hover_thrust:.3f} estimated from the IMU ({e.samples} samples, "
-                                   f"std {e.std:.3f}; started from {h.hover0:.3f})")
-        self._hover_u = thrust
+    def _note_hover(self, step: CoreStep) -> None:
+        """hover.estimate: a new estimate of the core's (companion/hover.py) is named in the events when it
+        moved by more than 0.01 (the log's hover topic has every one)."""
+        e = step.hover
+        if e is not None and (self._hover_logged is None or abs(e.hover_thrust - self._hover_logged) > 0.01):
+            self._hover_logged = e.hover_thrust
+            h0 = self.core.hover_estimator.hover0 if self.core is not None and self.core.hover_estimator else None
+            self.log.event(f"hover thrust {e.hover_thrust:.3f} estimated from the IMU ({e.samples} samples, "
+                           f"std {e.std:.3f}; started from {h0:.3f})")
 
     async def _land_normally(self, reason: Reason, why: str, via: State) -> None:
         pilot = self.cfg.app.start == "pilot"  # the pilot took off, the pilot lands
@@ -754,24 +738,12 @@ class FlightApp:
         self.log.state(tr.src.value, tr.dst.value, tr.reason, t=tr.t)
         self.notifier.status(f"{tr.dst.value}: {tr.reason}")
 
-    def _log_detection(self, frame: Frame, box: Any, valid: bool) -> None:
-        log_detection(self.log, frame, box, valid)
-
-    def _log_control(self, frame: Frame, d: Decision, lat_ms: float) -> None:
-        t_frame = frame.t - self.log.t0
+    def _log_control(self, frame: Frame, step: CoreStep, lat_ms: float) -> None:
+        d = step.decision
         out: ControlOutput | None = d.control  # type: ignore[assignment]
-        if out is not None:  # the controller ran (ENGAGE): its LOS and demand
-            los = out.los_ned if out.los_ned is not None else (None, None, None)
-            self.log.write("los", t_frame=t_frame, los_n=los[0], los_e=los[1], los_d=los[2],
-                           lambda_dot=out.lambda_dot, a_n=float(np.linalg.norm(out.a_n)),
-                           demand_scale=out.demand_scale, rejected=out.rejected or "")
-        sp = d.setpoint
-        assert sp is not None
         # ctrl_mode: the controller's mode in ENGAGE; "pass" (straight) / "recover" (level) otherwise.
         mode = out.mode if out is not None and d.phase is Phase.ENGAGE else d.phase.value.lower()
-        self.log.write("setpoints", t_frame=t_frame, state=self.sm.state.value, ctrl_mode=mode,
-                       roll_deg=sp.roll_deg, pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg, thrust=sp.thrust,
-                       latency_ms=lat_ms)
+        log_step(self.log, frame.t - self.log.t0, step, self.sm.state.value, mode, lat_ms)
 
     def _log_telemetry(self) -> None:
         truth = log_telemetry(self.log, self.link)
@@ -801,16 +773,6 @@ def log_telemetry(log: FlightLog, link: Any) -> Any:
         pn, vn = truth.position_ned, truth.velocity_ned
         log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
     return truth
-
-
-def log_detection(log: FlightLog, frame: Frame, box: Any, valid: bool) -> None:
-    """One row of the detections topic (the app and shadow mode log the same thing)."""
-    t_frame = frame.t - log.t0
-    if box is None:
-        log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
-    else:
-        log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
-                  h=box.h, confidence=box.confidence, valid=valid)
 
 
 def gate_logger(log: FlightLog, judge: GateJudge | None = None,

@@ -21,12 +21,14 @@ import math
 import signal
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from companion.app.flight import log_detection, log_telemetry
+from companion.app.flight import log_telemetry
+from companion.app.perframe import frame_input, log_detection, log_step
+from companion.core import FlightCore
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -127,11 +129,14 @@ async def shadow(
 
 
 class _Session:
-    def __init__(self, cfg: Config, link: ReadOnlyLink, log: Any, stderr: Any) -> None:
+    def __init__(self, cfg: Config, link: ReadOnlyLink, log: Any, stderr: Any,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         from companion.controller import PNController
 
         self.cfg, self.link, self.log, self.stderr = cfg, link, log, stderr
+        self.clock = clock
         self.ctrl = PNController.from_config(cfg)
+        self.core: FlightCore | None = None
         self.camera: Any = None
         self.perception: Any = None
         self.in_thread = False
@@ -139,6 +144,7 @@ class _Session:
         self.stats = {"frames": 0, "setpoints": 0, "engagements": 0, "passes": 0}
         self.hover_source = "config"
         self._baro0: float | None = None
+        self._passes_before = 0  # confirmed passes of the engagements that ended before the current one
 
     @staticmethod
     def connected_ok(link: Any) -> bool:
@@ -154,14 +160,6 @@ class _Session:
             self.hover_source = getattr(self.link, "hover_thrust_source", "autopilot")
             self.log.event(f"hover thrust {h:.3f} from MPC_THR_HOVER")
 
-    def _engagement(self) -> Any:
-        from companion.engagement import Engagement, EngagementParams
-
-        p = self.ctrl.p
-        params = EngagementParams.from_config(self.cfg, p.hover_thrust, p.guidance.f_min, p.guidance.f_max)
-        self.ctrl.reset()
-        return Engagement.from_config(self.cfg, self.ctrl, params)
-
     def _baro_rel(self) -> float | None:
         b = self.link.baro
         if b is None or not math.isfinite(b.altitude_raw_m):
@@ -170,17 +168,11 @@ class _Session:
             self._baro0 = b.altitude_raw_m  # the floor is above the ground we saw; never a mid-air reference
         return None if self._baro0 is None else b.altitude_raw_m - self._baro0
 
-    def _attitude_at(self, t: float) -> np.ndarray | None:
-        q = self.link.attitude_history.at(t)
-        if q is None and self.link.attitude is not None:
-            q = self.link.attitude.q_wxyz
-        return q
-
     async def run(self, stop: asyncio.Event, duration: float | None) -> tuple[Any, str]:
         from companion.app.states import Reason
 
         self.started = True
-        eng = self._engagement()
+        self.core = FlightCore.from_config(self.cfg, controller=self.ctrl)
         t_end = None if duration is None else time.monotonic() + duration
         tel = asyncio.create_task(self._telemetry(stop))
         try:
@@ -198,54 +190,45 @@ class _Session:
                     with contextlib.suppress(asyncio.CancelledError, Exception):
                         await read
                     continue
-                frame = read.result()
-                eng = await self._frame(eng, frame)
+                await self._frame(self.core, read.result())
             return Reason.OK, "stopped by the operator"
         finally:
             tel.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await tel
 
-    async def _frame(self, eng: Any, frame: Any) -> Any:
-        t_avail = time.monotonic()
+    async def _frame(self, core: FlightCore, frame: Any) -> None:
+        t_avail = self.clock()
         if self.in_thread:
             box = await asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame)
         else:
             box = self.perception.process(frame)
-        q = self._attitude_at(frame.t)
         self.stats["frames"] += 1
         valid = box is not None and box.is_valid(self.cfg.camera.width, self.cfg.camera.height)
-        t_frame = frame.t - self.log.t0
         log_detection(self.log, frame, box, valid)
-        if q is None:
-            return eng  # no attitude yet: nothing to compute from
-        d = eng.step(frame.t, box, q, self._baro_rel())
+        inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
+        if inp is None:
+            return  # no attitude yet: nothing to compute from
+        inp = replace(inp, accel_frd=None, t_now=None, imu=None)
+        step = core.step(inp)
+        d = step.decision
         if d.changed:
             self.log.event(f"shadow: {d.previous.value} -> {d.phase.value}: {d.why}")
             if d.previous.value == "ACQUIRE":
                 self.stats["engagements"] += 1
         for ev in d.events:
             self.log.event(f"shadow: {ev}")
-            if " passed" in ev:
-                self.stats["passes"] += 1
+        self.stats["passes"] = self._passes_before + step.passes_confirmed
         out = d.control
-        if out is not None and getattr(out, "los_ned", None) is not None:
-            los = out.los_ned
-            self.log.write("los", t_frame=t_frame, los_n=los[0], los_e=los[1], los_d=los[2],
-                           lambda_dot=out.lambda_dot, a_n=float(np.linalg.norm(out.a_n)),
-                           demand_scale=out.demand_scale, rejected=out.rejected or "")
-        sp = d.setpoint
-        if sp is not None:
+        if d.setpoint is not None:
             mode = f"{d.phase.value}/{getattr(out, 'mode', '-')}" if out is not None else d.phase.value
-            self.log.write("setpoints", t_frame=t_frame, state=SHADOW_STATE, ctrl_mode=mode, roll_deg=sp.roll_deg,
-                           pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg, thrust=sp.thrust,
-                           latency_ms=(time.monotonic() - t_avail) * 1e3)
+            log_step(self.log, frame.t - self.log.t0, step, SHADOW_STATE, mode, (self.clock() - t_avail) * 1e3)
             self.stats["setpoints"] += 1
         if d.phase.done:
             self.log.event(f"shadow: engagement ended ({d.reason.name if d.reason else '-'}): {d.why}; "
                            "a new one starts")
-            return self._engagement()
-        return eng
+            self._passes_before = self.stats["passes"]
+            core.restart()
 
     async def _telemetry(self, stop: asyncio.Event) -> None:
         while not stop.is_set():

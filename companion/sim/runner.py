@@ -26,7 +26,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from companion.configbase import deep_merge
-from companion.engagement import Engagement, Phase
+from companion.core import FlightCore, FrameInput
+from companion.engagement import Phase
 from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
 from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
@@ -175,7 +176,7 @@ class _Steering:
             return self.ctrl.step(t, box, q)
         # baseline: velocities known (GPS), as Bhattacharya et al. assume
         out = self.ctrl.step(t, box, q, v.copy(), gv - v)
-        los = self.ctrl._l_prev
+        los = out.los_enu
         return _BaselineOut(out.t, out.setpoint, out.mode, None if los is None else P_NED_ENU @ los)
 
 
@@ -244,7 +245,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     sensors = Sensors(sim.sensors, rng_sens)
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)
-    eng = Engagement.from_config(cfg, steer) if engaged else None
+    core = FlightCore.from_config(cfg, controller=steer) if engaged else None
+    eng = core.engagement if core is not None else None
     hover = _hover_estimator(cfg, spec, steer.ctrl, ss)
     scorer = PlaneCrossingScorer(gate.normal)
 
@@ -314,13 +316,15 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             steer.imu = (acc_cap if cfg.sim.imu_to_controller else None, t)
             if sim.camera.attitude_at_capture:
                 q_est = q_cap
-            if eng is None:
+            if core is None:
                 out = steer.step(t_cap, b, q_est)
                 sp, mode, last_out = out.setpoint, out.mode, out
             else:
                 # Barometric altitude above the ground with the run's baro offset (its white noise, 0.1 m,
                 # is irrelevant to the floor and would shift the attitude-noise stream).
-                d = eng.step(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, (), *steer.imu)
+                acc, t_now = steer.imu
+                d = core.step(FrameInput(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, accel_frd=acc,
+                                         t_now=t_now)).decision
                 sp, mode = d.setpoint, d.phase.value
                 last_out = d.control if d.control is not None else last_out
                 if d.phase.done:

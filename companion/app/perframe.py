@@ -1,0 +1,69 @@
+"""One frame of the vehicle loops, shared by the flight (companion/app/flight.py) and shadow mode
+(companion/app/shadow.py): the core's input read from the vehicle, and the rows a step leaves in the log.
+
+Both loops call these and nothing else between the camera and ``FlightCore.step``, so shadow computes what a
+flight would send (tests/app/test_shadow_equals_flight.py checks it bit for bit).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from companion.core import CoreStep, FrameInput, ImuReading
+
+if TYPE_CHECKING:
+    from companion.flightlog import FlightLog
+    from companion.vehicle import VehicleTelemetry
+
+
+def attitude_at(vehicle: VehicleTelemetry, t: float) -> np.ndarray | None:
+    """PX4's attitude estimate (NED/FRD wxyz) at a frame's capture time, not at its processing time: the box
+    must be rotated to the world with the attitude the camera had when it saw it. None before any sample."""
+    q = vehicle.attitude_history.at(t)
+    if q is None and vehicle.attitude is not None:
+        q = vehicle.attitude.q_wxyz
+    return q
+
+
+def frame_input(t: float, box: Any, vehicle: VehicleTelemetry, baro_rel_alt: float | None,
+                t_now: float) -> FrameInput | None:
+    """The core's input for a frame captured at ``t`` and processed at ``t_now`` (None: no attitude yet).
+    The newest accelerometer sample (50 Hz) goes to the controller (closing speed, drag) and to the
+    hover-thrust estimate."""
+    q = attitude_at(vehicle, t)
+    if q is None:
+        return None
+    imu = vehicle.imu
+    return FrameInput(t, box, q, baro_rel_alt, accel_frd=imu.accel_frd if imu is not None else None, t_now=t_now,
+                      imu=ImuReading(imu.t_rx, imu.accel_frd) if imu is not None else None)
+
+
+def log_detection(log: FlightLog, frame: Any, box: Any, valid: bool) -> None:
+    """One row of the detections topic."""
+    t_frame = frame.t - log.t0
+    if box is None:
+        log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
+    else:
+        log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
+                  h=box.h, confidence=box.confidence, valid=valid)
+
+
+def log_step(log: FlightLog, t_frame: float, step: CoreStep, state: str, ctrl_mode: str,
+             latency_ms: float) -> None:
+    """The rows of one core step: the controller's LOS and demand when it ran, the setpoint when there is
+    one (``state``/``ctrl_mode``: the loop's labels), and a new hover-thrust estimate."""
+    d = step.decision
+    out: Any = d.control
+    if out is not None:  # the controller ran (ENGAGE): its LOS and demand
+        los = out.los_ned if out.los_ned is not None else (None, None, None)
+        log.write("los", t_frame=t_frame, los_n=los[0], los_e=los[1], los_d=los[2], lambda_dot=out.lambda_dot,
+                  a_n=float(np.linalg.norm(out.a_n)), demand_scale=out.demand_scale, rejected=out.rejected or "")
+    sp = d.setpoint
+    if sp is not None:
+        log.write("setpoints", t_frame=t_frame, state=state, ctrl_mode=ctrl_mode, roll_deg=sp.roll_deg,
+                  pitch_deg=sp.pitch_deg, yaw_deg=sp.yaw_deg, thrust=sp.thrust, latency_ms=latency_ms)
+    e, x = step.hover, step.hover_input
+    if e is not None and x is not None:
+        log.write("hover", u_cmd=x[0], a_up=x[1], hover_thrust=e.hover_thrust, std=e.std, samples=e.samples)
