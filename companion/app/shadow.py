@@ -2,7 +2,9 @@
 
 The real camera (or the synthetic one), the detector and tracker, PX4's attitude, the LOS filter,
 the PN controller and the engagement's decisions (acquire, engage, pass, recover) run on every frame
-exactly as in a flight; the setpoints they produce are logged in the same topics (``setpoints`` rows
+exactly as in a flight: the same flight core (companion/core.py) with the same input read from the vehicle
+(companion/app/perframe.py: attitude at capture, accelerometer, time now, barometer), the same tracker reset
+and hover-thrust estimate (tests/app/test_shadow_equals_flight.py checks the setpoints bit for bit); the setpoints they produce are logged in the same topics (``setpoints`` rows
 with ``state = SHADOW`` and ``ctrl_mode = PHASE/controller mode``) and plotted beside the attitude
 the vehicle actually flew (``shadow.png``), and never sent. No arming, no take-off, no mode change,
 no offboard: the link is wrapped so that any commanding call raises (``ShadowViolation``) instead of
@@ -22,7 +24,6 @@ import signal
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -130,11 +131,13 @@ async def shadow(
 
 class _Session:
     def __init__(self, cfg: Config, link: ReadOnlyLink, log: Any, stderr: Any,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 on_setpoint: Callable[[float, Any], None] | None = None) -> None:
         from companion.controller import PNController
 
         self.cfg, self.link, self.log, self.stderr = cfg, link, log, stderr
         self.clock = clock
+        self.on_setpoint = on_setpoint  # each computed setpoint with its frame's time (a sink beside the log)
         self.ctrl = PNController.from_config(cfg)
         self.core: FlightCore | None = None
         self.camera: Any = None
@@ -164,7 +167,10 @@ class _Session:
         b = self.link.baro
         if b is None or not math.isfinite(b.altitude_raw_m):
             return None
-        if self._baro0 is None and self.link.landed_state == "ON_GROUND":
+        ref = self.cfg.safety.altitude_reference  # where the ground is, when the operator says so (as a flight)
+        if ref is not None:
+            self._baro0 = ref
+        elif self._baro0 is None and self.link.landed_state == "ON_GROUND":
             self._baro0 = b.altitude_raw_m  # the floor is above the ground we saw; never a mid-air reference
         return None if self._baro0 is None else b.altitude_raw_m - self._baro0
 
@@ -209,9 +215,12 @@ class _Session:
         inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
         if inp is None:
             return  # no attitude yet: nothing to compute from
-        inp = replace(inp, accel_frd=None, t_now=None, imu=None)
-        step = core.step(inp)
+        step = core.step(inp)  # the accelerometer, the time now, the hover estimate: as in a flight
         d = step.decision
+        if step.reset_tracker:
+            reset = getattr(self.perception, "reset", None)
+            if reset is not None:
+                reset()  # the flight resets the tracker here (the passed gate): so does its shadow
         if d.changed:
             self.log.event(f"shadow: {d.previous.value} -> {d.phase.value}: {d.why}")
             if d.previous.value == "ACQUIRE":
@@ -224,6 +233,8 @@ class _Session:
             mode = f"{d.phase.value}/{getattr(out, 'mode', '-')}" if out is not None else d.phase.value
             log_step(self.log, frame.t - self.log.t0, step, SHADOW_STATE, mode, (self.clock() - t_avail) * 1e3)
             self.stats["setpoints"] += 1
+            if self.on_setpoint is not None:
+                self.on_setpoint(frame.t, d.setpoint)
         if d.phase.done:
             self.log.event(f"shadow: engagement ended ({d.reason.name if d.reason else '-'}): {d.why}; "
                            "a new one starts")
