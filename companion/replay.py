@@ -201,7 +201,10 @@ def replay(
             co = ctrl.step(t, box, q)
             # No barometer, accelerometer or processing time in a video: the altitude floor is not checked, the
             # closing speed runs on its prior, frames have no age.
-            d = core.step(FrameInput(t, box, q)).decision
+            step = core.step(FrameInput(t, box, q))
+            d = step.decision
+            if step.reset_tracker:
+                pipe.reset()  # as the flight does at RECOVER: the tracker drops the gate just passed
             if d.changed and d.phase.done:
                 ended = f"{d.phase.value} ({d.reason.name if d.reason else ''}): {d.why}"
             asp = d.setpoint

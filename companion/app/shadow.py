@@ -4,7 +4,8 @@ The real camera (or the synthetic one), the detector and tracker, PX4's attitude
 the PN controller and the engagement's decisions (acquire, engage, pass, recover) run on every frame
 exactly as in a flight: the same flight core (companion/core.py) with the same input read from the vehicle
 (companion/app/perframe.py: attitude at capture, accelerometer, time now, barometer), the same tracker reset
-and hover-thrust estimate (tests/app/test_shadow_equals_flight.py checks the setpoints bit for bit); the setpoints they produce are logged in the same topics (``setpoints`` rows
+and hover-thrust estimate (tests/app/test_shadow_equals_flight.py checks the setpoints bit for bit); the
+setpoints they produce are logged in the same topics (``setpoints`` rows
 with ``state = SHADOW`` and ``ctrl_mode = PHASE/controller mode``) and plotted beside the attitude
 the vehicle actually flew (``shadow.png``), and never sent. No arming, no take-off, no mode change,
 no offboard: the link is wrapped so that any commanding call raises (``ShadowViolation``) instead of

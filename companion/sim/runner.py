@@ -26,10 +26,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from companion.configbase import deep_merge
-from companion.core import FlightCore, FrameInput
+from companion.core import FlightCore, FrameInput, ImuReading
 from companion.engagement import Phase
 from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
-from companion.hover import HoverThrustEstimator, use_hover_thrust
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.reasons import Reason
 from companion.sim.camera import GeometricCamera, detector_noise
@@ -148,6 +147,17 @@ class _Steering:
         self.imu: tuple[np.ndarray | None, float] | None = None  # (accelerometer FRD at capture, now), set per frame
 
     @property
+    def p(self) -> Any:
+        """The PN controller's parameters (the core's hover estimate updates them); none for the baseline."""
+        if self.kind == "baseline":
+            raise AttributeError("the velocity-based baseline has no PN parameters")
+        return self.ctrl.p
+
+    @p.setter
+    def p(self, value: Any) -> None:
+        self.ctrl.p = value
+
+    @property
     def drag_enu(self) -> np.ndarray | None:
         return getattr(self.ctrl, "drag_enu", None)
 
@@ -196,14 +206,6 @@ _END_REASONS = {Reason.OK: "handback", Reason.NO_TARGET: "no_target", Reason.TAR
 POST_CROSSING_S = 1.5  # s flown after the crossing at most while the engagement is still before RECOVER
 
 
-def _hover_estimator(cfg: Config, spec: RunSpec, ctrl: Any, ss: np.random.SeedSequence) -> tuple | None:
-    """(estimator, its own IMU) when hover.estimate is on; its own noise stream leaves the others' unchanged."""
-    if not cfg.hover.estimate or spec.controller == "baseline":
-        return None
-    return (HoverThrustEstimator(ctrl.p.hover_thrust, cfg.hover),
-            Sensors(cfg.sim.sensors, np.random.default_rng(ss.spawn(1)[0])))
-
-
 def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     """Fly one run to its end; deterministic for spec.seed.
 
@@ -247,7 +249,6 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     steer = _Steering(cfg, spec.controller)
     core = FlightCore.from_config(cfg, controller=steer) if engaged else None
     eng = core.engagement if core is not None else None
-    hover = _hover_estimator(cfg, spec, steer.ctrl, ss)
     scorer = PlaneCrossingScorer(gate.normal)
 
     dt = 1.0 / cfg.camera.rate
@@ -323,8 +324,11 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                 # Barometric altitude above the ground with the run's baro offset (its white noise, 0.1 m,
                 # is irrelevant to the floor and would shift the attitude-noise stream).
                 acc, t_now = steer.imu
-                d = core.step(FrameInput(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, accel_frd=acc,
-                                         t_now=t_now)).decision
+                step = core.step(FrameInput(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, accel_frd=acc,
+                                            t_now=t_now, imu=ImuReading(t, acc_frd)))
+                d = step.decision
+                if step.reset_tracker and hasattr(camera, "reset"):
+                    camera.reset()  # the rendered camera's tracker, as the app resets it at RECOVER
                 sp, mode = d.setpoint, d.phase.value
                 last_out = d.control if d.control is not None else last_out
                 if d.phase.done:
@@ -358,11 +362,6 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.accel.append(imu.accel)
             traj.baro.append(sensors.baro_altitude(float(s.p[2]), rng_rec))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
-        if hover is not None:  # in-flight hover-thrust estimate (companion/hover.py), hover.estimate=true
-            est, imu = hover
-            acc = imu.imu(quad.specific_force_body(), quad.state.omega).accel  # FLU: z is the thrust axis
-            if est.update(t + dt, thrust_cmd, float(acc[2])) is not None:
-                use_hover_thrust(steer.ctrl, est.hover_thrust, cfg.airframe.thrust_to_weight, eng)
         k += 1
     if crossing is not None:
         outcome = crossing  # ground truth scores the run, whatever the engagement did after
