@@ -253,7 +253,7 @@ def test_airborne_start_holds_and_streams_pose_for_the_synthetic_camera(cfg: Con
         gcs.drain()
         m = gcs.recv(lambda m: m.get_type() == "HIL_STATE_QUATERNION", 1.0)
         s = sim.truth()
-        from companion.sim.px4 import HOME_ALT, HOME_LAT
+        from companion.sim.px4.model import HOME_ALT, HOME_LAT
 
         assert m.lat * 1e-7 == pytest.approx(HOME_LAT + math.degrees(s.p[1] / 6_378_137.0), abs=1e-6)
         assert m.alt * 1e-3 == pytest.approx(HOME_ALT + s.p[2], abs=0.1)

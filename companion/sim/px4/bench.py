@@ -1,6 +1,6 @@
 """Benchmark of the simulated PX4 + the vehicle link through real mavsdk over UDP (reported, never asserted).
 
-    python -m companion.sim.px4_bench [--seconds 5]
+    python -m companion.sim.px4.bench [--seconds 5]
 
 Measures: connect / health / arm / takeoff / offboard-start times, setpoint latency (``set_setpoint``
 call -> datagram parsed by the sim), attitude telemetry latency (sim sends -> link cache) and rate,
@@ -27,7 +27,7 @@ def _pct(xs: list[float], q: float) -> float:
 async def _bench(seconds: float) -> dict[str, Any]:
     from companion.app.link import VehicleLink
     from companion.config import Config
-    from companion.sim.px4 import SimPX4
+    from companion.sim.px4.realtime import SimPX4
 
     cfg = Config()
     out: dict[str, Any] = {}
@@ -99,7 +99,7 @@ def benchmark(seconds: float = 5.0) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m companion.sim.px4_bench", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m companion.sim.px4.bench", description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0, help="offboard streaming period to measure")
     args = ap.parse_args(argv)
     res = benchmark(args.seconds)
