@@ -12,7 +12,7 @@ from companion.configbase import ConfigError
 COMMAND_MODULES = (
     "companion.bench",
     "companion.sim.cli",
-    "companion.evaluation",
+    "companion.evaluation.cli",
     "companion.replay",
     "companion.app.main",
     "companion.check",

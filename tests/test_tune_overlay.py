@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from companion.config import load_config
-from companion.evaluation import write_tuned_overlay
+from companion.evaluation.tune import write_tuned_overlay
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -94,7 +94,7 @@ def cmd_in_process(args: argparse.Namespace) -> int:
     if args.json is not None:
         args.json.write_text(json.dumps(d, indent=1))
     if not args.no_plot:
-        from companion.evaluation import plot_run
+        from companion.evaluation.plots import plot_run
 
         plot_run(res, args.plot)
         print(f"plot: {args.plot}", file=sys.stderr)

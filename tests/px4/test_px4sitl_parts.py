@@ -163,8 +163,8 @@ def test_client_commands_made_executable(tmp_path: Path) -> None:
 def test_px4_run_score_from_a_flight_log(tmp_path: Path) -> None:
     """The PX4 table's per-run score, from a flight log written by the real FlightLog: a straight pass 0.3 m
     beside a stationary gate 20 m ahead, engaged at t = 1 s, at 10 m/s."""
+    from companion.evaluation.px4 import score_flight
     from companion.flightlog import FlightLog
-    from companion.px4sitl.evaluate import score_flight
 
     t_now = [0.0]
     log = FlightLog(tmp_path / "f", {}, clock=lambda: t_now[0])

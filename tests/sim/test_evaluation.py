@@ -9,7 +9,8 @@ import pytest
 
 from companion.cli import main
 from companion.config import Config
-from companion.evaluation import build_suite, run_suite
+from companion.evaluation.pool import run_suite
+from companion.evaluation.suites import build_suite
 
 
 def test_table1_quick_end_to_end(tmp_path, capsys):
@@ -102,7 +103,7 @@ def test_bad_arguments_are_one_line_errors(capsys):
 
 
 def test_tune_quick_registers_every_evaluation():
-    from companion.evaluation import run_reward, tune
+    from companion.evaluation.tune import run_reward, tune
 
     res = tune(Config(), iterations=1, init_points=2, reward="d", runs_per_motion=1, seed=0, n_jobs=2,
                progress=False)

@@ -19,10 +19,7 @@ log per run in DIR/flights/.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import contextlib
-import json
 import math
 import multiprocessing as mp
 import os
@@ -33,11 +30,16 @@ import time
 import traceback
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from companion.evaluation.suites import PAPER, TABLE1_MOTIONS, build_suite
+from companion.evaluation.tables import latency_table, setpoint_table
 from companion.px4sitl.truth import EARTH_RADIUS, SihTruth
+
+if TYPE_CHECKING:
+    from companion.config import Config
 
 HOVER_ALTITUDE = 12.0  # m above the ground: the start points
 HALF_TRACK = 15.0  # m: start points at -15 m / +15 m north of the origin, facing each other
@@ -309,11 +311,9 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
 # ------------------------------------------------------------------------------------------ the suite
 
 
-def px4_jobs(suite_name: str, cfg: Any, runs: int | None, seed: int, motions: list[str] | None,
+def px4_jobs(suite_name: str, cfg: Config, runs: int | None, seed: int, motions: list[str] | None,
              camera: str) -> tuple[list[Px4Job], Any]:
     """The in-process suite's runs (same motions and seeds) as app flights; interleaved across groups."""
-    from companion.evaluation import TABLE1_MOTIONS, build_suite
-
     picked = motions or list(TABLE1_MOTIONS)
     per = max(1, (runs or 10 * len(picked)) // len(picked))
     suite = build_suite(suite_name, cfg, per * len(TABLE1_MOTIONS), seed)
@@ -330,35 +330,39 @@ def px4_jobs(suite_name: str, cfg: Any, runs: int | None, seed: int, motions: li
     return jobs, suite
 
 
-def run_px4_suite(args: argparse.Namespace, cfg: Any, out_dir: Path) -> dict[str, Any]:
+def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, seed: int, n_jobs: int,
+                  progress: bool, camera: str, px4_dir: str | None, motions: list[str] | None,
+                  config_files: list[str], overrides: list[str]) -> dict[str, Any]:
+    """Run a suite on ``n_jobs`` PX4 instances; the JSON-able result, in run_suite's keys plus PX4's own.
+
+    The workers load their config again from ``config_files`` and ``overrides`` (the ones ``cfg`` came from),
+    and write their logs and flights under ``out_dir``."""
     from tqdm import tqdm
 
     from companion.config import config_as_dict
-    from companion.evaluation import PAPER, setpoint_table
     from companion.px4sitl.launcher import find_sitl_dir
     from companion.sim.scoring import aggregate
 
-    if args.suite not in SUPPORTED:
+    if name not in SUPPORTED:
         raise ValueError(f"--autopilot px4 runs {', '.join(SUPPORTED)} (the other suites need ground truth or "
                          f"a controller the app does not fly: run them in-process)")
-    sitl = find_sitl_dir(args.px4_dir, cfg.px4.sitl_dir)
-    motions = [m.strip() for m in args.motions.split(",")] if args.motions else None
-    jobs, suite = px4_jobs(args.suite, cfg, args.runs, args.seed, motions, args.camera)
+    sitl = find_sitl_dir(px4_dir, cfg.px4.sitl_dir)
+    jobs, suite = px4_jobs(name, cfg, runs, seed, motions, camera)
     radii = suite.radii
     ctx = mp.get_context("spawn")
     jq, rq = ctx.Queue(), ctx.Queue()
     for j in jobs:
         jq.put(j)
-    n_workers = max(1, min(args.jobs, len(jobs)))
+    n_workers = max(1, min(n_jobs, len(jobs)))
     cands = list(range(cfg.px4.instance_min, cfg.px4.instance_max + 1))
-    procs = [ctx.Process(target=_worker, args=(w, str(sitl), list(args.config), list(args.overrides), str(out_dir),
+    procs = [ctx.Process(target=_worker, args=(w, str(sitl), list(config_files), list(overrides), str(out_dir),
                                                radii, jq, rq, cands, os.getpid()), daemon=False)
              for w in range(n_workers)]
     t0 = time.monotonic()
     for p in procs:
         p.start()
     out: dict[int, dict] = {}
-    bar = tqdm(total=len(jobs), desc=f"{args.suite} on PX4", unit="run", disable=args.no_progress, file=sys.stderr)
+    bar = tqdm(total=len(jobs), desc=f"{name} on PX4", unit="run", disable=not progress, file=sys.stderr)
     done = 0
     try:
         while done < n_workers:
@@ -385,57 +389,7 @@ def run_px4_suite(args: argparse.Namespace, cfg: Any, out_dir: Path) -> dict[str
     groups, md = suite.report(results, radii)
     total = aggregate(results, radii)
     md += "\n\n" + setpoint_table(groups, total) + "\n\n" + latency_table(results)
-    return {"suite": args.suite, "autopilot": "px4", "seed": args.seed, "radii": radii, "total": total,
-            "groups": groups, "markdown": md, "paper": PAPER[args.suite], "wall_time_s": time.monotonic() - t0,
-            "sim_time_s": sum(r.get("wall_s", 0.0) for r in results), "jobs": n_workers, "camera": args.camera,
+    return {"suite": name, "autopilot": "px4", "seed": seed, "radii": radii, "total": total,
+            "groups": groups, "markdown": md, "paper": PAPER[name], "wall_time_s": time.monotonic() - t0,
+            "sim_time_s": sum(r.get("wall_s", 0.0) for r in results), "jobs": n_workers, "camera": camera,
             "protocol": "app", "sih": cfg.px4.sih.model_dump(), "config": config_as_dict(cfg), "runs": results}
-
-
-def latency_table(results: list[dict]) -> str:
-    lines = ["| Gate motion | runs | frame->setpoint p50 ms (mean) | p95 ms (max) | app outcomes |",
-             "|---|---|---|---|---|"]
-    groups: dict[str, list[dict]] = {}
-    for r in results:
-        groups.setdefault(r.get("motion", "?"), []).append(r)
-    for name, rs in [*groups.items(), ("total", results)]:
-        p50 = [r["latency_p50_ms"] for r in rs if r.get("latency_p50_ms") is not None]
-        p95 = [r["latency_p95_ms"] for r in rs if r.get("latency_p95_ms") is not None]
-        outcomes: dict[str, int] = {}
-        for r in rs:
-            k = str(r.get("reason") or r.get("end_reason"))
-            outcomes[k] = outcomes.get(k, 0) + 1
-        lines.append(f"| {name} | {len(rs)} | {np.mean(p50):.1f} | {np.max(p95):.1f} | "
-                     f"{', '.join(f'{k} {v}' for k, v in sorted(outcomes.items()))} |" if p50 else
-                     f"| {name} | {len(rs)} | - | - | {', '.join(f'{k} {v}' for k, v in sorted(outcomes.items()))} |")
-    return "\n".join(lines)
-
-
-def cmd_eval_px4(args: argparse.Namespace, cfg: Any, out_dir: Path) -> int:
-    from companion.evaluation import _json_default
-    from companion.px4sitl.launcher import PX4SitlError
-
-    try:
-        res = run_px4_suite(args, cfg, out_dir)
-    except (ValueError, PX4SitlError) as e:
-        print(f"companion eval: {e}", file=sys.stderr)
-        return 2
-    json_path = args.json if args.json is not None else out_dir / "results.json"
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(res, indent=1, default=_json_default))
-    cmd = "companion eval " + " ".join(sys.argv[2:])
-    sih = cfg.px4.sih
-    md = (f"## {args.suite} on PX4 SITL (SIH)\n\nCommand: `{cmd}`  \nReal PX4 v1.15 SITL, SIH vehicle "
-          f"{sih.mass:g} kg, thrust-to-weight {sih.thrust_to_weight:.2f}, drag {sih.kdv:g} N/(m/s); the complete "
-          f"app (start=pilot, hand back to Hold), camera {args.camera}; scored by SIH's ground truth. "
-          f"Runs: {len(res['runs'])}, seed {args.seed}, {res['wall_time_s'] / 60:.1f} min wall on "
-          f"{res['jobs']} PX4 instance(s). t_gate: ENGAGE to the gate plane (runs start in hover 25 m away). "
-          f"Ours first, the paper's in brackets.\n\n{res['markdown']}\n")
-    (out_dir / "table.md").write_text(md)
-    print(md)
-    print(f"wrote {json_path}, {out_dir / 'table.md'}, flight logs in {out_dir / 'flights'}")
-    with contextlib.suppress(Exception):
-        errors = [r for r in res["runs"] if r.get("error")]
-        if errors:
-            print(f"companion eval: {len(errors)} run(s) failed in the harness, first: {errors[0]['error']}",
-                  file=sys.stderr)
-    return 0
