@@ -45,6 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.scoring import plane_crossings
+
 FORMAT_VERSION = 1
 
 # Topics with their columns. Fixed here so a reader (and a test) knows what to expect.
@@ -447,8 +449,10 @@ class Crossing:
 def gate_crossings(flight: Flight) -> list[Crossing]:
     """Where the logged vehicle position (truth topic) crossed the logged virtual gate's plane.
 
-    Scoring only (synthetic-camera flights): the gate centre is interpolated to the truth samples,
-    the crossing time is where the signed distance along the normal changes sign (+ -> -).
+    Scoring only (synthetic-camera flights): the gate centre is interpolated to the truth samples, and
+    each crossing (signed distance along the gate's first logged normal going + -> -) is companion/scoring.py's
+    ``plane_crossings``, the geometry of the simulator and of the app's judge. This re-scores the log's own
+    samples; ``flight_crossings`` gives the app's live judgement where the flight recorded one.
     """
     gate, truth = flight.tables.get("gate"), flight.tables.get("truth")
     if gate is None or truth is None or len(gate) < 2 or len(truth) < 2:
@@ -457,6 +461,24 @@ def gate_crossings(flight: Flight) -> list[Crossing]:
     for k in np.unique(gate["k"][np.isfinite(gate["k"])]):
         out += _crossings_of(gate, truth, np.isfinite(gate["gate_n"]) & (gate["k"] == k))
     return sorted(out, key=lambda c: c.t)
+
+
+def flight_crossings(flight: Flight) -> list[Crossing]:
+    """The flight's gate crossings as the app judged them live (summary.json "truth", on the flight-log clock).
+
+    One computation for a flight: its verdict, summary.json and the gate lines printed after it all come from
+    the app's judge (companion/app/outcome.py); re-scoring the logged topics (``gate_crossings``) stamps the
+    truth rows at another instant and so can give another distance. A log without that record (killed, shadow
+    mode, written before summary.json kept the crossing time) is re-scored from its topics.
+    """
+    truth = flight.summary.get("truth")
+    gates = truth.get("gates") if isinstance(truth, dict) else None
+    t0 = flight.meta.get("t0_monotonic")
+    if not isinstance(gates, list) or t0 is None \
+            or any(g.get("crossed") and g.get("t_monotonic_s") is None for g in gates):
+        return gate_crossings(flight)
+    return sorted((Crossing(float(g["t_monotonic_s"]) - float(t0), float(g["d_center_m"]), float(g["radius_m"]))
+                   for g in gates if g.get("crossed")), key=lambda c: c.t)
 
 
 def _crossings_of(gate: Table, truth: Table, g_ok: np.ndarray) -> list[Crossing]:
@@ -468,15 +490,7 @@ def _crossings_of(gate: Table, truth: Table, g_ok: np.ndarray) -> list[Crossing]
     tt = tt[sel]
     p = np.column_stack([truth[c][sel] for c in ("n", "e", "d")])
     c = np.column_stack([np.interp(tt, gt, gate[k][g_ok]) for k in ("gate_n", "gate_e", "gate_d")])
-    nrm = np.column_stack([np.interp(tt, gt, gate[k][g_ok]) for k in ("normal_n", "normal_e", "normal_d")])
-    rad = np.interp(tt, gt, gate["radius"][g_ok])
-    r = p - c
-    s = np.einsum("ij,ij->i", r, nrm)
-    out: list[Crossing] = []
-    for i in np.flatnonzero((s[:-1] > 0) & (s[1:] <= 0)):
-        a = s[i] / (s[i] - s[i + 1])
-        ri = r[i] + a * (r[i + 1] - r[i])
-        ni = nrm[i]
-        lateral = ri - (ri @ ni) * ni
-        out.append(Crossing(float(tt[i] + a * (tt[i + 1] - tt[i])), float(np.linalg.norm(lateral)), float(rad[i])))
-    return out
+    # One normal and radius per gate, the first logged (as the app's judge takes them): a gate does not turn or grow.
+    normal = np.array([gate[k][g_ok][0] for k in ("normal_n", "normal_e", "normal_d")])
+    radius = float(gate["radius"][g_ok][0])
+    return [Crossing(x.t, x.d_center, radius) for x in plane_crossings(normal, tt, p, c)]

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.flightlog import Flight, gate_crossings, latest_flight, read_flight
+from companion.flightlog import Flight, flight_crossings, latest_flight, read_flight
 
 LATENCY_PERCENTILES = (50, 90, 95, 99)
 # A frame interval longer than this many nominal periods means frames were lost in between.
@@ -152,7 +152,7 @@ def summarise(folder: str | Path) -> LogSummary:
     frames, dropped, measured = frame_stats(flight, float(rate) if rate else None)
     sp = flight.tables.get("setpoints")
     shadow = bool(sp is not None and len(sp) and np.any(np.asarray(sp["state"], dtype=str) == "SHADOW"))
-    gates = [GateRow(c.t, c.d_center, c.radius, c.through) for c in gate_crossings(flight)]
+    gates = [GateRow(c.t, c.d_center, c.radius, c.through) for c in flight_crossings(flight)]
     return LogSummary(
         folder=str(folder), outcome=str(s.get("outcome", "unknown")), reason=s.get("reason"),
         exit_code=s.get("exit_code"), detail=str(s.get("detail", "")), duration_s=s.get("duration_s"),

@@ -506,10 +506,10 @@ def run_sim(args: argparse.Namespace) -> int:
 
 def print_flight_report(folder: Path, summary: dict[str, Any]) -> None:
     """The end of ``companion sim``: outcome, each gate crossing (from the logged truth), latency, log folder."""
-    from companion.flightlog import gate_crossings, read_flight
+    from companion.flightlog import flight_crossings, read_flight
 
     f = read_flight(folder)
-    cross = gate_crossings(f)
+    cross = flight_crossings(f)
     lat = summary.get("frame_to_setpoint_ms", {})
     print(f"outcome: {summary.get('outcome')} ({summary.get('reason')}): {summary.get('detail')}")
     for i, c in enumerate(cross, 1):

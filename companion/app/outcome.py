@@ -2,8 +2,10 @@
 
 Where ground truth exists (our simulated PX4, PX4 SITL: the link's ``truth_for_log`` position and the
 synthetic camera's gate log) the ``GateJudge`` scores each gate like the in-process studies do
-(companion/sim/scoring.py ``PlaneCrossingScorer``: the first crossing of the gate plane from the
-vehicle's side, distance to the centre there against the gate radius). ``verdict`` turns that, and
+(companion/scoring.py, the geometry the simulator and the flight log use too: the first crossing of the
+gate plane from the vehicle's side, distance to the centre there against the gate radius). Its results
+are the flight's one record of the gates: the verdict, summary.json's "truth" and the gate lines printed
+after a flight (companion/flightlog.py ``flight_crossings``) all read them. ``verdict`` turns that, and
 what the engagement claimed, into the flight's reason (its exit code):
 
 * with truth: a gate plane crossed outside the radius, or fewer gates flown through than passes
@@ -14,6 +16,13 @@ what the engagement claimed, into the flight's reason (its exit code):
 The judge's samples arrive from the telemetry monitor (vehicle position) and the camera (gate
 positions) on the same monotonic clock; a moving gate is extrapolated linearly from its last two
 samples to each vehicle sample.
+
+Why a PX4 flight's printed gate line once said 0.05 m while summary.json's truth said 0.121 m: the line was
+re-scored from the flight log, the truth judged live here, on other samples. The log stamps a truth row
+when the telemetry loop writes it (every 50 ms, the latest sample again if none came since) while the judge
+takes each sample at its arrival time, and the log interpolates the gate between its rows where the judge
+extrapolates it: a moving gate is compared at other instants. The printed line now reads this judge's
+record (``GateResult.as_dict`` keeps the crossing time for it; tests/app/test_outcome.py reproduces the case).
 """
 
 from __future__ import annotations
@@ -24,14 +33,15 @@ import numpy as np
 
 from companion.app.states import Reason
 from companion.engagement import GatePass
-from companion.sim.scoring import PlaneCrossingScorer
+from companion.scoring import GatePlane, PlaneCrossing
 
 
 @dataclass
 class _Gate:
     k: int
     radius: float
-    scorer: PlaneCrossingScorer
+    plane: GatePlane
+    first: PlaneCrossing | None = None  # the first crossing: the gate's score
     samples: list[tuple[float, np.ndarray]] = field(default_factory=list)  # (t, centre NED), the last two
 
     def centre_at(self, t: float) -> np.ndarray:
@@ -55,8 +65,9 @@ class GateResult:
         return self.crossed and self.d_center is not None and self.d_center < self.radius
 
     def as_dict(self) -> dict:
+        # t_monotonic_s: the flight log's meta.json "t0_monotonic" is its 0 (flightlog.flight_crossings)
         return {"gate": self.gate, "radius_m": self.radius, "crossed": self.crossed,
-                "d_center_m": self.d_center, "through": self.through}
+                "d_center_m": self.d_center, "through": self.through, "t_monotonic_s": self.t}
 
 
 class GateJudge:
@@ -69,7 +80,7 @@ class GateJudge:
     def gate(self, t: float, k: int, centre_ned: np.ndarray, normal_ned: np.ndarray, radius: float) -> None:
         g = self._gates.get(k)
         if g is None:
-            g = self._gates[k] = _Gate(k, float(radius), PlaneCrossingScorer(np.asarray(normal_ned, dtype=float)))
+            g = self._gates[k] = _Gate(k, float(radius), GatePlane(np.asarray(normal_ned, dtype=float)))
         if g.samples and t <= g.samples[-1][0]:
             return
         g.samples = [*g.samples[-1:], (float(t), np.asarray(centre_ned, dtype=float).copy())]
@@ -80,7 +91,8 @@ class GateJudge:
             return
         self.vehicle_samples += 1
         for g in list(self._gates.values()):  # a copy: the image camera adds gates from its worker thread
-            g.scorer.update(t, p, g.centre_at(t))
+            if g.first is None:
+                g.first = g.plane.update(t, p, g.centre_at(t))
 
     @property
     def has_truth(self) -> bool:
@@ -90,9 +102,8 @@ class GateJudge:
         out = []
         for k in sorted(self._gates):
             g = self._gates[k]
-            r = g.scorer.result
-            out.append(GateResult(k, g.radius, False) if r is None else GateResult(k, g.radius, True, r.t_gate,
-                                                                                      r.d_center))
+            r = g.first
+            out.append(GateResult(k, g.radius, False) if r is None else GateResult(k, g.radius, True, r.t, r.d_center))
         return out
 
 

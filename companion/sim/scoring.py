@@ -4,7 +4,8 @@ Ground truth (positions) is used here and only here: the controller never sees i
 The gate plane passes through the moving gate centre with the gate's fixed normal. The run is
 decided by the first crossing of that plane from the vehicle's side (normal side) to the other:
 ``d_center`` is the distance from the crossing point to the gate centre at that instant. Between
-two samples, vehicle and gate move linearly (at 30 Hz the error is ~a dt^2 / 8, about 1 mm).
+two samples, vehicle and gate move linearly (at 30 Hz the error is ~a dt^2 / 8, about 1 mm): that geometry
+is companion/scoring.py's, shared with the app's judge and the flight log.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+
+from companion.scoring import GatePlane, signed_distance
 
 FailReason = Literal["fov_lost", "timeout", "ground", "missed"]
 
@@ -56,37 +59,29 @@ class RunOutcome:
 
 @dataclass
 class PlaneCrossingScorer:
-    """Feed it (t, vehicle position, gate centre) samples; it reports the first front-to-back crossing."""
+    """Feed it (t, vehicle position, gate centre) samples; it reports the first front-to-back crossing.
+
+    The crossing geometry is companion/scoring.py's (the app's judge and the flight log use the same)."""
 
     normal: np.ndarray  # unit, points to the side the vehicle starts on
-    _prev: tuple[float, np.ndarray, np.ndarray, float] | None = field(default=None, init=False)
+    _plane: GatePlane = field(init=False, repr=False)
     result: RunOutcome | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
-        n = np.asarray(self.normal, dtype=float)
-        self.normal = n / np.linalg.norm(n)
+        self._plane = GatePlane(self.normal)
+        self.normal = self._plane.normal
 
     def signed_distance(self, p: np.ndarray, gate: np.ndarray) -> float:
-        return float(self.normal @ (np.asarray(p, float) - np.asarray(gate, float)))
+        return signed_distance(self.normal, np.asarray(p, float), np.asarray(gate, float))
 
     def update(self, t: float, p: np.ndarray, gate: np.ndarray) -> RunOutcome | None:
         """Returns the outcome at the first crossing, else None."""
         if self.result is not None:
             return self.result
-        p = np.asarray(p, dtype=float)
-        gate = np.asarray(gate, dtype=float)
-        s = self.signed_distance(p, gate)
-        if self._prev is not None:
-            t0, p0, g0, s0 = self._prev
-            if s0 > 0.0 >= s:
-                tau = s0 / (s0 - s)
-                pc = p0 + tau * (p - p0)
-                gc = g0 + tau * (gate - g0)
-                d = float(np.linalg.norm(pc - gc))
-                self.result = RunOutcome(True, t0 + tau * (t - t0), d, None, pc)
-                return self.result
-        self._prev = (t, p.copy(), gate.copy(), s)
-        return None
+        c = self._plane.update(t, p, gate)
+        if c is not None:
+            self.result = RunOutcome(True, c.t, c.d_center, None, c.point)
+        return self.result
 
 
 def aggregate(outcomes: list[dict], radii: list[float]) -> dict:

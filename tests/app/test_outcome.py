@@ -107,3 +107,80 @@ def test_a_missed_gate_is_not_exit_0(sim, tmp_path):
     # Independent: the flight log's own plane-crossing scorer (logged truth and gate) agrees.
     (c,) = gate_crossings(f)
     assert not c.through and math.isclose(c.d_center, g["d_center_m"], abs_tol=0.3)
+
+
+def _flight_with_judge(folder, lag: float = 0.03):
+    """A flight's scoring paths as the app wires them (companion/app/flight.py): the camera logs each gate row
+    and hands it to the judge on the monotonic clock; a truth sample arrives (t_rx) and the telemetry loop,
+    every 50 ms, logs the latest one at its own time and feeds the judge that sample's t_rx. The gate moves east
+    at 2 m/s, the vehicle flies north at 8 m/s through its plane 0.1 m from where the gate centre is then."""
+    from companion.flightlog import FlightLog
+
+    now = [1000.0]
+    log = FlightLog(folder, clock=lambda: now[0])
+    judge = GateJudge()
+    t0 = now[0]
+
+    def gate_at(t):
+        return np.array([20.0, 2.0 * (t - t0) - 5.0, -5.0])
+
+    def vehicle_at(t):
+        return np.array([8.0 * (t - t0), 2.0 * (t - t0) - 5.0 + 0.1, -5.0])
+
+    events = [(t0 + i / 30.0, "camera") for i in range(120)] + [(t0 + 0.011 + i / 30.0, "truth") for i in range(120)]
+    events += [(t0 + 0.02 + i * 0.05, "telemetry") for i in range(80)]
+    latest = None
+    for t, kind in sorted(events):
+        now[0] = t
+        if kind == "camera":
+            c, n = gate_at(t), NORMAL
+            log.write("gate", k=1, gate_n=c[0], gate_e=c[1], gate_d=c[2], normal_n=n[0], normal_e=n[1],
+                      normal_d=n[2], radius=1.0, visible=True)
+            judge.gate(t, 1, c, n, 1.0)
+        elif kind == "truth":
+            latest = (t, vehicle_at(t - lag))  # (t_rx, position): it left the simulator `lag` s before
+        elif latest is not None:
+            t_rx, pn = latest
+            log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=8.0, ve=2.0, vd=0.0)
+            judge.vehicle(t_rx, pn)
+    gates = judge.results()
+    summary = {"outcome": "SAFE_LANDED", "reason": "OK", "detail": "landed and disarmed",
+               "truth": {"gates": [g.as_dict() for g in gates], "through": sum(g.through for g in gates),
+                         "missed": sum(g.crossed and not g.through for g in gates)}}
+    log.close(summary)
+    return summary
+
+
+def test_printed_gate_line_and_summary_truth_come_from_one_computation(tmp_path, capsys):
+    """The disagreement seen on a PX4 flight (printed 0.05 m, summary.json 0.121 m): the printed line re-scored
+    the log (truth rows stamped at the telemetry loop's time, the same sample repeated) while summary.json's
+    truth is the live judge (each sample at its arrival time). Same samples, two paths: now one number."""
+    from companion.app.main import print_flight_report
+    from companion.flightlog import flight_crossings
+    from companion.logtools import summarise
+
+    summary = _flight_with_judge(tmp_path / "f")
+    (g,) = summary["truth"]["gates"]
+    f = read_flight(tmp_path / "f")
+    # The kind of disagreement: the log's own re-score differs by centimetres from the judge.
+    (c,) = gate_crossings(f)
+    assert abs(c.d_center - g["d_center_m"]) > 0.02, (c.d_center, g["d_center_m"])
+    # What is printed and summarised is the judge's record, exactly, on the flight-log clock.
+    (x,) = flight_crossings(f)
+    assert x.d_center == g["d_center_m"] and x.radius == g["radius_m"] and x.through is g["through"]
+    assert x.t == pytest.approx(g["t_monotonic_s"] - f.meta["t0_monotonic"], abs=1e-12)
+    print_flight_report(tmp_path / "f", summary)
+    line = next(s for s in capsys.readouterr().out.splitlines() if s.startswith("gate 1:"))
+    assert f"{g['d_center_m']:.2f} m from the centre" in line and "through" in line
+    (row,) = summarise(tmp_path / "f").gates
+    assert row.d_center == g["d_center_m"]
+
+
+def test_a_log_without_the_judges_record_is_rescored(tmp_path):
+    """A killed flight (summary.json still "running") or an older log: the crossings come from the topics."""
+    from companion.flightlog import flight_crossings
+
+    _flight_with_judge(tmp_path / "f")
+    (tmp_path / "f" / "summary.json").write_text('{"outcome": "running"}\n')
+    f = read_flight(tmp_path / "f")
+    assert flight_crossings(f) == gate_crossings(f) and len(gate_crossings(f)) == 1
