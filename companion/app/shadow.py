@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from companion.app.flight import log_detection, log_telemetry
+from companion.app.logrows import log_detection, log_telemetry
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -57,8 +57,8 @@ async def shadow(
     plot: bool = True, record: str | Path | None = None, record_kw: dict[str, Any] | None = None,
 ) -> tuple[int, Path, dict[str, Any]]:
     """One shadow session. Returns (exit code, log folder, summary)."""
+    from companion.app.assemble import build_camera
     from companion.app.link import VehicleLink
-    from companion.app.main import build_camera
     from companion.app.states import Reason
     from companion.config import config_as_dict
     from companion.flightlog import FlightLog
