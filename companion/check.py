@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from companion.config import camera_uptilt
+from companion.app.preflight import summary_lines
 from companion.configbase import ConfigError
 
 
@@ -26,29 +26,6 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=_cmd_check)
 
 
-def summary_lines(cfg: Any) -> list[str]:
-    """What a flight would use, one topic per line (also the static part of the pre-flight summary)."""
-    K = cfg.camera.K
-    dist = ", ".join(f"{d:.4g}" for d in cfg.camera.distortion) or "none"
-    af, g, s, app = cfg.airframe, cfg.guidance, cfg.safety, cfg.app
-    cam_src = "synthetic" if app.camera == "synthetic" else cfg.perception.source
-    m, uptilt = cfg.camera.mount, camera_uptilt(cfg)
-    return [
-        f"airframe: {af.name}, mass {af.mass:g} kg, hover thrust {af.hover_thrust:.3f} (config), "
-        f"T/W {af.thrust_to_weight:g}, thrust_min {af.thrust_min:g}; in-flight hover estimate "
-        f"{'on' if cfg.hover.estimate else 'off'}",
-        f"camera: {cam_src}, {cfg.camera.width}x{cfg.camera.height} @ {cfg.camera.rate:g} Hz, fx {K[0, 0]:.1f} "
-        f"fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}, distortion {dist}, mount roll/pitch/yaw "
-        f"{m.roll:g}/{m.pitch:g}/{m.yaw:g} deg",
-        f"guidance: k_pn {g.k_pn:g}, gamma_bar {g.gamma_bar:g} deg, v_rel_bar {g.v_rel_bar:g} m/s, fov {g.fov}"
-        + (f", FOV bound from the camera pitched up {uptilt:g} deg" if uptilt else ""),
-        f"flight: start={app.start}, take-off altitude {app.takeoff_altitude:g} m, on_close={app.on_close}, "
-        f"max gates {app.max_gates}",
-        "safety: " + ", ".join(f"{k} {v}" for k, v in s.model_dump(mode="json").items()),
-        f"link: {cfg.link.url}",
-    ]
-
-
 def _cmd_check(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
@@ -57,7 +34,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     need_detector = not (cfg.app.camera == "synthetic" and cfg.app.synthetic.render == "geometric")
     det = "not needed (geometric synthetic camera)"
     if need_detector and not args.no_detector:
-        from companion.app.main import detector_available
+        from companion.app.assemble import detector_available
 
         why = detector_available(cfg)
         if why is not None:

@@ -23,12 +23,12 @@ import argparse
 import csv
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from companion.attitude import AttitudeTrack
 from companion.config import Config, add_config_arguments, config_from_args
 
 CSV_COLUMNS = (
@@ -43,25 +43,6 @@ CSV_COLUMNS = (
 
 class ReplayError(ValueError):
     """Bad replay input, as one line."""
-
-
-@dataclass
-class AttitudeTrack:
-    """Attitude samples (t, q_wxyz NED/FRD), interpolated by slerp; held constant outside the samples."""
-
-    t: np.ndarray
-    q_wxyz: np.ndarray
-    frame_times: dict[int, float] | None = None
-
-    def at(self, t: float) -> np.ndarray:
-        from scipy.spatial.transform import Rotation, Slerp
-
-        if len(self.t) == 1:
-            return self.q_wxyz[0].copy()
-        tc = float(np.clip(t, self.t[0], self.t[-1]))
-        rot = Rotation.from_quat(self.q_wxyz[:, [1, 2, 3, 0]])
-        x, y, z, w = Slerp(self.t, rot)([tc]).as_quat()[0]
-        return np.array([w, x, y, z])
 
 
 def level_attitude() -> AttitudeTrack:

@@ -357,7 +357,7 @@ def test_uptilt_saturation_scale_is_the_largest_feasible(data) -> None:
 
 
 def test_check_summary_names_the_uptilt() -> None:
-    from companion.check import summary_lines
+    from companion.app.preflight import summary_lines
 
     lines = summary_lines(load_config([SIH]))
     assert any("mount roll/pitch/yaw 0/15/0 deg" in x for x in lines)

@@ -29,9 +29,10 @@ def _detector_available(cfg: Any) -> bool:
 
 def bench_app(quick: bool = False, cfg: Any = None, render: str | None = None) -> dict[str, Any]:
     """Fly one simulated flight (take-off 5 m, linear-fast gate 25 m away) and report the app's numbers."""
-    from companion.app.main import SimPX4Process, fly
+    from companion.app.session import fly
     from companion.config import load_config
     from companion.configbase import deep_merge
+    from companion.sim.process import SimPX4Process
 
     base = cfg if cfg is not None else load_config()
     if render is None:

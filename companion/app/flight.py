@@ -18,7 +18,6 @@ import contextlib
 import math
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -28,16 +27,15 @@ from companion.app import link as linkmod
 from companion.app import preflight
 from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
+from companion.app.logrows import log_detection, log_telemetry
 from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
 from companion.app.perframe import frame_input, log_step
-from companion.app.perframe import log_detection as log_detection
 from companion.app.states import Reason, State, StateMachine, Transition
 from companion.controller import ControlOutput, PNController
 from companion.core import CoreStep, FlightCore
 from companion.engagement import Phase
 from companion.flightlog import FlightLog
-from companion.frames import euler_ned_deg_from_R
 from companion.limits import Abort
 
 if TYPE_CHECKING:
@@ -749,43 +747,3 @@ class FlightApp:
         truth = log_telemetry(self.log, self.link)
         if truth is not None and self.judge is not None:
             self.judge.vehicle(truth.t_rx, truth.position_ned)
-
-
-def log_telemetry(log: FlightLog, link: Any) -> Any:
-    """One row of the telemetry topic and, where the link has it, of truth (the app and shadow mode alike).
-    Returns the truth sample logged (None without truth) for the app's gate judge."""
-    att = link.attitude
-    q = att.q_wxyz if att is not None else (None,) * 4
-    r = p = y = None
-    if att is not None:
-        r, p, y = euler_ned_deg_from_R(att.R_ned_frd)
-    imu, b = link.imu, link.baro
-    extra = {}
-    if imu is not None:
-        a, g = imu.accel_frd, imu.gyro_frd
-        extra = {"acc_f": a[0], "acc_r": a[1], "acc_d": a[2], "gyro_f": g[0], "gyro_r": g[1], "gyro_d": g[2]}
-    log.write("telemetry", t_att=att.t_rx - log.t0 if att is not None else None,
-              qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
-              baro_alt_m=None if b is None else b.altitude_raw_m, flight_mode=link.flight_mode, armed=link.armed,
-              landed_state=link.landed_state, **extra)
-    truth = link.truth_for_log  # log only: scoring and plots, never an input of the controller
-    if truth is not None:
-        pn, vn = truth.position_ned, truth.velocity_ned
-        log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
-    return truth
-
-
-def gate_logger(log: FlightLog, judge: GateJudge | None = None,
-                clock: Callable[[], float] = time.monotonic) -> Callable[[int, Any, np.ndarray, float, bool], None]:
-    """Callback for the synthetic camera: log each virtual gate (scene ENU -> NED), and hand it to the
-    judge (on the monotonic clock of the link's truth samples). Scoring only."""
-    from companion.frames import enu_to_ned
-
-    def on_gate(k: int, gate: Any, c_enu: np.ndarray, radius: float, visible: bool) -> None:
-        c, n = enu_to_ned(c_enu), enu_to_ned(gate.normal)
-        log.write("gate", k=k, gate_n=c[0], gate_e=c[1], gate_d=c[2], normal_n=n[0], normal_e=n[1],
-                  normal_d=n[2], radius=radius, visible=visible)
-        if judge is not None:
-            judge.gate(clock(), k, c, n, radius)
-
-    return on_gate

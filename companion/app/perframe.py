@@ -1,5 +1,6 @@
 """One frame of the vehicle loops, shared by the flight (companion/app/flight.py) and shadow mode
-(companion/app/shadow.py): the core's input read from the vehicle, and the rows a step leaves in the log.
+(companion/app/shadow.py): the core's input read from the vehicle, and the rows a step leaves in the log
+(the detection and telemetry rows are companion/app/logrows.py's).
 
 Both loops call these and nothing else between the camera and ``FlightCore.step``, so shadow computes what a
 flight would send (tests/app/test_shadow_equals_flight.py checks it bit for bit).
@@ -38,16 +39,6 @@ def frame_input(t: float, box: Any, vehicle: VehicleTelemetry, baro_rel_alt: flo
     imu = vehicle.imu
     return FrameInput(t, box, q, baro_rel_alt, accel_frd=imu.accel_frd if imu is not None else None, t_now=t_now,
                       imu=ImuReading(imu.t_rx, imu.accel_frd) if imu is not None else None)
-
-
-def log_detection(log: FlightLog, frame: Any, box: Any, valid: bool) -> None:
-    """One row of the detections topic."""
-    t_frame = frame.t - log.t0
-    if box is None:
-        log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
-    else:
-        log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
-                  h=box.h, confidence=box.confidence, valid=valid)
 
 
 def log_step(log: FlightLog, t_frame: float, step: CoreStep, state: str, ctrl_mode: str,

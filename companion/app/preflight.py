@@ -4,7 +4,7 @@ What the operator confirms (printed, logged as events and written to ``preflight
 folder): the link, the autopilot's version, mode, armed / armable state, PX4's failsafe settings (what
 happens if this app dies), the hover thrust in use and where it came from, the camera's measured frame
 rate, the detector's status on those frames, the PN parameters, the flight envelope and the safety
-limits.
+limits. Its config part (``summary_lines``) is also what ``companion check`` prints.
 
 Confirmation: ``companion fly`` asks on stdin ("yes" to arm) unless ``--yes``. Anything else, an
 end of input, or no answer within ``CONFIRM_TIMEOUT`` is a named ground abort (``ABORT_NOT_ARMED``,
@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.config import camera_uptilt
+
 Confirm = Callable[[str], Awaitable[bool]]
 CONFIRM_TIMEOUT = 120.0  # s the operator has to answer
 FRAME_SAMPLE_S = 1.0  # s of camera frames measured before arming
@@ -33,8 +35,6 @@ FRAME_SAMPLE_S = 1.0  # s of camera frames measured before arming
 
 async def gather(app: Any) -> dict[str, Any]:
     """Everything the summary shows, read now (best effort: a value that cannot be read says so)."""
-    from companion.check import summary_lines
-
     cfg, link = app.cfg, app.link
     out: dict[str, Any] = {
         "link": {"url": cfg.link.url, "ok": bool(link.link_ok), "telemetry_age_s": round(link.telemetry_age, 3)},
@@ -53,6 +53,29 @@ async def gather(app: Any) -> dict[str, Any]:
         "static": summary_lines(cfg),
     }
     return out
+
+
+def summary_lines(cfg: Any) -> list[str]:
+    """What a flight would use, one topic per line (also the static part of the pre-flight summary)."""
+    K = cfg.camera.K
+    dist = ", ".join(f"{d:.4g}" for d in cfg.camera.distortion) or "none"
+    af, g, s, app = cfg.airframe, cfg.guidance, cfg.safety, cfg.app
+    cam_src = "synthetic" if app.camera == "synthetic" else cfg.perception.source
+    m, uptilt = cfg.camera.mount, camera_uptilt(cfg)
+    return [
+        f"airframe: {af.name}, mass {af.mass:g} kg, hover thrust {af.hover_thrust:.3f} (config), "
+        f"T/W {af.thrust_to_weight:g}, thrust_min {af.thrust_min:g}; in-flight hover estimate "
+        f"{'on' if cfg.hover.estimate else 'off'}",
+        f"camera: {cam_src}, {cfg.camera.width}x{cfg.camera.height} @ {cfg.camera.rate:g} Hz, fx {K[0, 0]:.1f} "
+        f"fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}, distortion {dist}, mount roll/pitch/yaw "
+        f"{m.roll:g}/{m.pitch:g}/{m.yaw:g} deg",
+        f"guidance: k_pn {g.k_pn:g}, gamma_bar {g.gamma_bar:g} deg, v_rel_bar {g.v_rel_bar:g} m/s, fov {g.fov}"
+        + (f", FOV bound from the camera pitched up {uptilt:g} deg" if uptilt else ""),
+        f"flight: start={app.start}, take-off altitude {app.takeoff_altitude:g} m, on_close={app.on_close}, "
+        f"max gates {app.max_gates}",
+        "safety: " + ", ".join(f"{k} {v}" for k, v in s.model_dump(mode="json").items()),
+        f"link: {cfg.link.url}",
+    ]
 
 
 def _hover_source(app: Any) -> str:

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.attitude import AttitudeTrack
+
 FORMAT = "companion-recording"
 INDEX_COLUMNS = ("frame", "file", "t", "t_mono", "qw", "qx", "qy", "qz", "width", "height")
 FREE_MARGIN_BYTES = 200 * 1024 * 1024  # leave this much free on the disk (the flight log needs room too)
@@ -252,9 +254,7 @@ class RecordingReader:
         self._k = len(self.rows)
 
     def attitude(self) -> Any:
-        """The attitude track of the recording (replay's AttitudeTrack), frame k at its recorded time."""
-        from companion.replay import AttitudeTrack
-
+        """The attitude track of the recording (companion/attitude.py), frame k at its recorded time."""
         ok = np.isfinite(self.q).all(axis=1)
         if not ok.any():
             return None

@@ -28,8 +28,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from companion.app.flight import log_telemetry
-from companion.app.perframe import frame_input, log_detection, log_step
+from companion.app.logrows import log_detection, log_telemetry
+from companion.app.perframe import frame_input, log_step
 from companion.core import FlightCore
 
 if TYPE_CHECKING:
@@ -61,8 +61,8 @@ async def shadow(
     plot: bool = True, record: str | Path | None = None, record_kw: dict[str, Any] | None = None,
 ) -> tuple[int, Path, dict[str, Any]]:
     """One shadow session. Returns (exit code, log folder, summary)."""
+    from companion.app.assemble import build_camera
     from companion.app.link import VehicleLink
-    from companion.app.main import build_camera
     from companion.app.states import Reason
     from companion.config import config_as_dict
     from companion.flightlog import FlightLog

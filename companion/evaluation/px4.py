@@ -229,7 +229,7 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
     kernel's parent-death signal), and SIGTERM here unwinds through ``finally``, which stops PX4. Without this a
     killed ``companion eval`` left its workers flying (and restarting) PX4 instances with nobody listening.
     """
-    from companion.app.main import fly
+    from companion.app.session import fly
     from companion.config import load_config
     from companion.px4sitl.launcher import PX4Sitl, die_with_parent, px4_params
     from companion.px4sitl.run import record_px4

@@ -46,8 +46,9 @@ def record_px4(folder: Path, px4: PX4Sitl) -> None:
 
 
 def run_px4_sim(args: argparse.Namespace) -> int:
-    from companion.app.main import fly, print_flight_report, sim_overrides
+    from companion.app.session import fly
     from companion.config import load_config
+    from companion.sim.appflight import print_flight_report, sim_overrides
 
     ov = sim_overrides(args)
     cfg = load_config(args.config, ov)

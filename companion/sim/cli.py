@@ -3,7 +3,7 @@
 Default: the simulated PX4 in its own process (MAVLink over UDP on 127.0.0.1), the synthetic
 camera and the flight app together in real time, exactly as on a drone: arm, take off, acquire,
 engage, pass, recover, land. A live status line on stderr; the flight log and its plot at the end
-(companion/app/main.py :func:`run_sim`). The exit code is the flight's outcome (0 = passed, landed).
+(companion/sim/cli.py :func:`run_sim`). The exit code is the flight's outcome (0 = passed, landed).
 
 ``--autopilot px4``: the same flight against real PX4 SITL with its SIH simulator (from $PX4_SITL_DIR,
 px4.sitl_dir or --px4-dir), started and stopped here (companion/px4sitl/run.py).
@@ -20,10 +20,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from companion.app.main import add_sim_arguments, run_sim
+from companion.app.main import exit_when_done, run_flight_process
+from companion.app.session import StartRefused, fly
 from companion.config import add_config_arguments, config_from_args
 from companion.px4sitl.run import add_px4_arguments, run_px4_sim
+from companion.sim.appflight import print_flight_report, sim_overrides
 from companion.sim.gates import MOTIONS
+from companion.sim.process import SimPX4Process
 from companion.sim.runner import CAMERAS, CONTROLLERS, RunSpec, run_once
 
 
@@ -42,6 +45,11 @@ def add_in_process_arguments(p: argparse.ArgumentParser) -> None:
                    help="plot file (default sim_run.png)")
     p.add_argument("--no-plot", action="store_true")
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write the run's result as JSON")
+
+
+def add_sim_arguments(p: argparse.ArgumentParser) -> None:
+    """The options ``companion sim`` adds for its default (simulated PX4 + app) mode."""
+    p.add_argument("--no-status", action="store_true", help="no live status line on stderr")
 
 
 def register(subparsers: Any) -> None:
@@ -63,6 +71,24 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if args.autopilot == "px4":
         return run_px4_sim(args)
     return run_sim(args)
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    """``companion sim``: simulated PX4 (own process) + synthetic camera + the app, in real time."""
+    from companion.config import load_config
+
+    ov = sim_overrides(args)
+    with SimPX4Process(args.config, [o for o in ov if o.startswith(("sim.", "airframe."))]) as px4:
+        print(f"companion sim: simulated PX4 on 127.0.0.1:{px4.port} (pid {px4.proc.pid})", file=sys.stderr)
+        cfg = load_config(args.config, [*ov, f"link.url={px4.url}"])
+        try:
+            reason, folder, summary = run_flight_process(fly(cfg, status_line=not getattr(args, "no_status", False),
+                                                             plot=not getattr(args, "no_plot", False)))
+        except StartRefused as e:
+            print(f"companion sim: {e}", file=sys.stderr)
+            return 2
+    print_flight_report(folder, summary)
+    return exit_when_done(int(reason))
 
 
 def cmd_in_process(args: argparse.Namespace) -> int:

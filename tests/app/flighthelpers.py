@@ -45,7 +45,7 @@ async def wait_state(app: Any, name: str, timeout: float = 30.0) -> None:
 
 
 def run_flight(cfg: Config, alongside: Callable[[Any], Awaitable[None]] | None = None) -> tuple[Any, Path, dict]:
-    from companion.app.main import fly
+    from companion.app.session import fly
 
     errors: list[BaseException] = []
 

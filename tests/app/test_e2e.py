@@ -148,7 +148,7 @@ def test_pilot_start_waits_for_the_pilots_hover(sim, tmp_path):
 
 
 def _detector_missing() -> str | None:
-    from companion.app.main import detector_available
+    from companion.app.assemble import detector_available
     from companion.config import load_config
 
     return detector_available(load_config())

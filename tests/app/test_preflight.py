@@ -11,7 +11,7 @@ import sys
 import pytest
 from flighthelpers import make_config
 
-from companion.app.main import fly
+from companion.app.session import fly
 from companion.app.states import Reason
 from companion.flightlog import read_flight
 
@@ -63,7 +63,7 @@ def test_summary_measures_a_real_cameras_frame_rate_and_runs_the_detector(sim, t
     import cv2
     import numpy as np
 
-    from companion.app.main import detector_available
+    from companion.app.assemble import detector_available
     from companion.config import load_config
     from perception.los import CameraModel
     from perception.render import TRAIN_STYLE, Gate, make_background, render_gate_frame

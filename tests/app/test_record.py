@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from flighthelpers import make_config
 
-from companion.app.main import detector_available
+from companion.app.assemble import detector_available
 from companion.app.record import Recorder, RecordingReader
 from companion.app.states import Reason
 from companion.config import load_config
@@ -103,7 +103,7 @@ def test_record_a_flight_and_replay_the_recording(sim, tmp_path):
 def run_flight_recorded(cfg, rec):
     import asyncio
 
-    from companion.app.main import fly
+    from companion.app.session import fly
 
     async def main():
         return await asyncio.wait_for(fly(cfg, plot=False, handle_signals=False, record=rec), 90.0)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from flighthelpers import make_config, run_flight
 
-from companion.app.main import detector_available
+from companion.app.assemble import detector_available
 from companion.app.states import Reason
 from companion.config import load_config
 from companion.flightlog import read_flight

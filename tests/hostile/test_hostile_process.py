@@ -241,7 +241,7 @@ def test_hung_detector_thread_the_process_still_exits_with_its_outcome(sim, tmp_
     """The detector call never returns (in its worker thread), from the first frame (ACQUIRE: no offboard
     watchdog there) or later (usually engaged): the flight ends in SAFE_HOLD with PERCEPTION_STALL (12), and
     the process exits instead of waiting for the thread forever."""
-    from companion.app.main import detector_available
+    from companion.app.assemble import detector_available
     from companion.config import load_config
 
     if detector_available(load_config()) is not None:

@@ -1,0 +1,90 @@
+"""The camera and perception a flight uses, from its config (``fly`` and shadow mode alike).
+
+A device camera through the detector pipeline, or the synthetic camera drawn from the vehicle's pose
+(geometric box, or rendered frames through the detector), its virtual gates logged and handed to the
+gate judge. Also ``detector_available``: whether the configured detector loads (``companion check``,
+``companion sim``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from companion.app.outcome import GateJudge
+    from companion.config import Config
+    from companion.flightlog import FlightLog
+
+
+def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+    """(camera source, perception, run perception in a thread) for the configured camera; the synthetic
+    camera's gates go to the log and to ``judge`` (companion/app/outcome.py, ground truth).
+
+    Every source is wrapped in CheckedCamera: each frame is checked for plausibility (size, type,
+    timestamps, frozen content) before perception sees it.
+    """
+    from companion.app.camera import CheckedCamera
+
+    cam, perception, in_thread = _build_camera(cfg, link, log, judge)
+    return CheckedCamera.from_config(cam, cfg), perception, in_thread
+
+
+def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+    from companion.app.synthcam import SyntheticCamera, VehiclePose
+
+    if cfg.app.camera == "synthetic":
+
+        def pose() -> VehiclePose | None:
+            # Sensor simulation only: the pose draws the picture; the controller never sees it.
+            truth, att = link.truth_for_log, link.attitude
+            if truth is None or att is None:
+                return None
+            # Stamped with the attitude sample's time: the frame is "captured" at the instant whose
+            # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
+            source = getattr(link, "truth_source", None)
+            if source is not None:  # a simulator's truth (PX4 SIH): its true pose at that instant
+                true = source.at(att.t_rx)
+                return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
+            return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
+
+        cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log, judge))
+        if cam.render == "geometric":
+            return cam, cam.perception(), False
+        from perception.pipeline import Pipeline
+
+        return cam, cam.perception(Pipeline.from_config(cfg)), True
+    from companion.app.camera import DeviceCamera, PipelinePerception
+    from perception.pipeline import Pipeline
+
+    return DeviceCamera.open(cfg.perception.source), PipelinePerception(Pipeline.from_config(cfg)), True
+
+
+def gate_logger(log: FlightLog, judge: GateJudge | None = None,
+                clock: Callable[[], float] = time.monotonic) -> Callable[[int, Any, np.ndarray, float, bool], None]:
+    """Callback for the synthetic camera: log each virtual gate (scene ENU -> NED), and hand it to the
+    judge (on the monotonic clock of the link's truth samples). Scoring only."""
+    from companion.frames import enu_to_ned
+
+    def on_gate(k: int, gate: Any, c_enu: np.ndarray, radius: float, visible: bool) -> None:
+        c, n = enu_to_ned(c_enu), enu_to_ned(gate.normal)
+        log.write("gate", k=k, gate_n=c[0], gate_e=c[1], gate_d=c[2], normal_n=n[0], normal_e=n[1],
+                  normal_d=n[2], radius=radius, visible=visible)
+        if judge is not None:
+            judge.gate(clock(), k, c, n, radius)
+
+    return on_gate
+
+
+def detector_available(cfg: Config) -> str | None:
+    """None when the configured detector loads, else the one-line reason it does not."""
+    try:
+        from perception.detector import Detector
+
+        Detector.from_config(cfg.perception)
+        return None
+    except Exception as e:  # a missing or broken model file
+        return f"{type(e).__name__}: {e}"

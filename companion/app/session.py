@@ -1,0 +1,176 @@
+"""One flight of the app, start to safe state: ``fly`` (``companion fly``, ``companion sim``, bench, tests).
+
+The vehicle lock, the flight log, the link, the camera and perception (companion/app/assemble.py), the
+state machine (companion/app/flight.py), then everything closed in order; an exception that gets out of
+the state machine still ends in a named safe state (``_escaped``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import signal
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from companion.app.assemble import build_camera
+
+if TYPE_CHECKING:
+    from collections.abc import Awaitable, Callable
+
+    from companion.app.flight import FlightApp
+    from companion.app.states import Reason
+    from companion.config import Config
+
+
+class StartRefused(RuntimeError):
+    """The flight cannot start (vehicle locked by another app, flight log unusable): one line, exit 2.
+
+    Raised before the app connects, so nothing has been commanded.
+    """
+
+
+
+async def fly(
+    cfg: Config,
+    *,
+    status_line: bool = False,
+    plot: bool = True,
+    stderr: Any = sys.stderr,
+    handle_signals: bool = True,
+    alongside: Callable[[FlightApp], Awaitable[None]] | None = None,
+    record: str | Path | None = None,
+    record_kw: dict[str, Any] | None = None,
+    confirm: Callable[[str], Awaitable[bool]] | None = None,
+) -> tuple[Reason, Path, dict[str, Any]]:
+    """One flight, start to safe state. Returns (outcome, flight folder, summary).
+
+    ``alongside(app)`` runs next to the flight and is cancelled when it ends (tests inject faults with it).
+    """
+    from companion.app.vehiclelock import VehicleBusy, VehicleLock
+
+    # One app per vehicle, held until the link is closed (then nothing of ours commands it any more).
+    lock = VehicleLock(cfg.link.url)
+    try:
+        lock.acquire()
+    except VehicleBusy as e:
+        raise StartRefused(str(e)) from None
+    try:
+        return await _fly_locked(cfg, status_line=status_line, plot=plot, stderr=stderr,
+                                 handle_signals=handle_signals, alongside=alongside, record=record,
+                                 record_kw=record_kw, confirm=confirm)
+    finally:
+        lock.release()
+
+
+async def _fly_locked(
+    cfg: Config,
+    *,
+    status_line: bool,
+    plot: bool,
+    stderr: Any,
+    handle_signals: bool,
+    alongside: Callable[[FlightApp], Awaitable[None]] | None,
+    record: str | Path | None,
+    record_kw: dict[str, Any] | None,
+    confirm: Callable[[str], Awaitable[bool]] | None = None,
+) -> tuple[Reason, Path, dict[str, Any]]:
+    from companion.app.flight import FlightApp
+    from companion.app.link import VehicleLink
+    from companion.app.notify import Notifier
+    from companion.app.outcome import GateJudge
+    from companion.app.states import Reason
+    from companion.config import config_as_dict
+    from companion.flightlog import FlightLog, FlightLogError
+
+    try:  # refused before connecting: a flight without its log is not flown
+        log = FlightLog.create(cfg.log.directory, config_as_dict(cfg), min_free_mb=cfg.log.min_free_mb,
+                               flush_interval=cfg.log.flush_interval, stderr=stderr)
+    except FlightLogError as e:
+        raise StartRefused(f"cannot start the flight log: {e}") from None
+    print(f"companion: logging to {log.folder}", file=stderr, flush=True)
+    notifier = Notifier()
+    app: FlightApp | None = None
+    link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
+                                   else log.event(f"link {kind} {detail}"))
+    truth = None
+    try:
+        from companion.px4sitl.truth import attach_truth
+
+        truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
+        judge = GateJudge()  # ground truth, where a simulator provides it: scores the gates, never steers
+        camera, perception, in_thread = build_camera(cfg, link, log, judge)
+        if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
+            from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
+
+            camera = RecordingCamera(camera, recorder_for_flight(record, cfg, log, stderr, **(record_kw or {})),
+                                     link_attitude(link))
+        app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
+                        status_line=status_line, perception_in_thread=in_thread, judge=judge,
+                        confirm=confirm)
+        loop = asyncio.get_running_loop()
+        if handle_signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, app.trip, Reason.SIGNAL, f"{signal.Signals(sig).name} received")
+        side = asyncio.create_task(alongside(app)) if alongside is not None else None
+        try:
+            reason = await app.run()
+        finally:
+            if side is not None:
+                side.cancel()
+                await asyncio.gather(side, return_exceptions=True)
+        summary = app.summary()
+    except Exception as e:
+        if app is None:  # set-up failed before the state machine ran: nothing connected, nothing armed
+            reason = Reason.CAMERA_FAILED
+            summary = {"outcome": "ABORT_NOT_ARMED", "reason": reason.name, "exit_code": int(reason),
+                       "detail": f"{type(e).__name__}: {e}"}
+            log.state("INIT", "ABORT_NOT_ARMED", summary["detail"])
+            print(f"companion: set-up failed: {summary['detail']}", file=stderr, flush=True)
+        else:
+            reason, summary = await _escaped(app, link, e, stderr)
+    finally:
+        if handle_signals:
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(link.close(), 10.0)
+        if truth is not None:
+            truth.close()
+        notifier.close()
+    log.close(summary)
+    if plot and cfg.log.plot:
+        try:
+            from companion.app.plot import plot_flight
+
+            plot_flight(log.folder)
+        except Exception as e:  # (a plot must never change the flight's outcome)
+            print(f"companion: plot failed: {type(e).__name__}: {e}", file=stderr)
+    return reason, log.folder, summary
+
+
+async def _escaped(app: FlightApp, link: Any, err: Exception, stderr: Any) -> tuple[Reason, dict[str, Any]]:
+    """An exception got out of the state machine (a bug): record only what is true of the vehicle.
+
+    If the machine already reached its safe state, that stands. Otherwise streaming is stopped
+    (closing the link ends MAVSDK's resending, so PX4's offboard-loss failsafe acts once we
+    commanded it) and the state named is the one that is true then: not armed on the ground,
+    PX4's own failsafe in the air.
+    """
+    from companion.app.flight import GROUND_STATES
+    from companion.app.states import Reason, State
+
+    detail = f"{type(err).__name__}: {err}"
+    print(f"companion: flight logic failed: {detail}", file=stderr, flush=True)
+    if not app.sm.done:
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(link.close(), 10.0)
+        dst = State.ABORT_NOT_ARMED if app.sm.state in GROUND_STATES else State.SAFE_FAILSAFE_LINK
+        with contextlib.suppress(Exception):
+            app.sm.go(dst, f"{detail}; streaming stopped", Reason.EXCEPTION)
+    summary = app.summary()
+    summary.setdefault("error", detail)
+    reason = app.sm.outcome if app.sm.outcome is not None else Reason.EXCEPTION
+    return reason, summary
