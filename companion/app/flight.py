@@ -1,8 +1,9 @@
 """The flight: camera -> perception -> LOS filter -> controller -> setpoint, under one state machine.
 
-Read ``FlightApp._frame`` top to bottom for the data path of one frame; ``_sequence`` for the
-order of a flight; ``_safe_end`` for what every fault does. Around the sequence run three
-monitors: telemetry (logs it; detects link loss and pilot takeover), the watchdog (no fresh
+Read ``FlightApp._frame_loop`` top to bottom for the data path of one frame (the decisions are the flight core's,
+companion/core.py); ``_sequence`` for the order of a flight; ``_safe_end`` (companion/app/safeend.py) for what
+every fault does. Around the sequence run three monitors (companion/app/monitors.py): telemetry (logs it;
+detects link loss and pilot takeover), the watchdog (no fresh
 setpoint while we own the vehicle -> hand over to HOLD; MAVSDK would otherwise resend the last
 setpoint forever) and the status line / systemd notifications.
 
@@ -23,14 +24,15 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from companion.app import link as linkmod
 from companion.app import preflight
-from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
+from companion.app.camera import CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
 from companion.app.logrows import log_detection, log_telemetry
+from companion.app.monitors import Monitors
 from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
 from companion.app.perframe import frame_input, log_step
+from companion.app.safeend import SafeEnds
 from companion.app.states import Reason, State, StateMachine, Transition
 from companion.controller import ControlOutput, PNController
 from companion.core import CoreStep, FlightCore
@@ -40,21 +42,6 @@ from companion.limits import Abort
 
 if TYPE_CHECKING:
     from companion.config import Config
-
-GROUND_STATES = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
-# Modes a pilot selects (mavsdk FlightMode names); any other mode we did not ask for is PX4's own choice.
-PILOT_MODES = frozenset({"POSCTL", "ALTCTL", "MANUAL", "STABILIZED", "ACRO", "RATTITUDE"})
-# Modes the vehicle may show while the app is in a state; anything else is noticed (companion/app/states.py).
-EXPECTED_MODES: dict[State, frozenset[str]] = {
-    State.TAKEOFF: frozenset({"TAKEOFF", "HOLD"}),
-    State.ACQUIRE: frozenset({"HOLD"}),
-    State.ENGAGE: frozenset({"HOLD", "OFFBOARD"}),  # HOLD until PX4 confirms OFFBOARD at the first engage
-    State.PASS: frozenset({"OFFBOARD"}),
-    State.RECOVER: frozenset({"OFFBOARD"}),
-    State.HANDBACK: frozenset({"OFFBOARD", "HOLD"}),
-    State.LAND: frozenset({"LAND", "HOLD"}),  # HOLD until PX4 shows the LAND we commanded
-}
-
 
 class _ClearLine:
     """A text stream that clears the terminal line (the live status line) before each message."""
@@ -87,7 +74,7 @@ class FlightStats:
     wall_s: float = 0.0
 
 
-class FlightApp:
+class FlightApp(Monitors, SafeEnds):
     def __init__(
         self,
         cfg: Config,
@@ -153,36 +140,6 @@ class FlightApp:
         """
         if self._fault is not None:
             raise _Tripped(self._fault)
-
-    def on_link_event(self, kind: str, detail: dict[str, Any]) -> None:
-        """Every link event goes to the log; the ones that end a flight trip the state machine.
-
-        PX4's own words (events, STATUSTEXT) of warning level or worse go to stderr too.
-        """
-        if kind in ("px4_event", "status_text"):
-            level = str(detail.get("level", detail.get("type", "")))
-            severe = bool(detail.get("severe", level.lower() in ("emergency", "alert", "critical", "error",
-                                                                 "warning")))
-            self.log.event(f"PX4 {level}: {detail.get('text')}", "warn" if severe else "info")
-            if severe and self.stderr is not None:
-                print(f"companion: PX4 {level}: {detail.get('text')}", file=self.stderr, flush=True)
-            return
-        self.log.event(f"link {kind} {detail}" if detail else f"link {kind}", "warn" if kind in (
-            "watchdog", "loop_guard", "loop_guard_stop", "offboard_lost", "link_lost", "close_leaked",
-            "telemetry_error", "telemetry_rejected", "telemetry_invalid", "envelope", "exposed") else "info")
-        if kind in ("watchdog", "loop_guard"):  # the link's setpoint watchdog / loop guard: our output stopped
-            self.trip(Reason.PERCEPTION_STALL, f"link watchdog: no fresh setpoint for {detail.get('age', 0):.2f} s")
-        elif kind == "offboard_lost":  # PX4 left OFFBOARD by itself: the pilot or a PX4 failsafe has it
-            mode = str(detail.get("mode"))
-            self.trip(Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE,
-                      f"vehicle left OFFBOARD for {mode}")
-        elif kind == "link_lost":
-            self.trip(Reason.LINK_LOST, f"no telemetry for {detail.get('age', 0):.1f} s")
-        elif kind == "telemetry_invalid":
-            self.trip(Reason.TELEMETRY_INVALID, f"{detail.get('count')} {detail.get('what')} samples rejected "
-                      f"within 1 s (last: {detail.get('why')})")
-        elif kind == "envelope" and detail.get("action") == "clamped" and self.stderr is not None:
-            print(f"companion: setpoint envelope: {detail.get('why')}", file=self.stderr, flush=True)
 
     async def run(self) -> Reason:
         cpu0, wall0 = time.process_time(), self.clock()
@@ -520,216 +477,6 @@ class FlightApp:
         if b is None or self._baro0 is None or not math.isfinite(b):
             return None
         return b - self._baro0
-
-    # ------------------------------------------------------------------------------ safe ends
-    async def _safe_end(self, fault: Abort) -> None:
-        """Bring the vehicle to one named state that is TRUE of it: HOLD only when PX4 reports HOLD, landed
-        only when landed and disarmed; otherwise the state names what the autopilot reports."""
-        st, r, d = self.sm.state, fault.reason, fault.detail
-        self._last_setpoint = math.inf  # the watchdog has nothing more to guard
-        if r is Reason.LINK_LOST:
-            await self.link.close()
-            self.sm.go(State.SAFE_FAILSAFE_LINK, d + "; streaming stopped, PX4's own failsafe acts", r)
-            return
-        if r in (Reason.PILOT_TAKEOVER, Reason.AUTOPILOT_MODE, Reason.DISARMED):
-            # Someone else has the vehicle: no mode change of ours, never offboard again; closing the link
-            # ends MAVSDK's resending too.
-            await self.link.close()
-            self._go_seen(d + "; we stopped commanding", r)
-            return
-        if r is Reason.VEHICLE_BUSY and st in GROUND_STATES:
-            self.sm.go(State.REFUSED, d, r)
-            return
-        if st in GROUND_STATES:
-            if self.link.armed is True:  # e.g. the arm ACK was lost but PX4 armed: say so, do not claim "not armed"
-                self._go_seen(d + "; the vehicle is armed", r)
-            else:
-                self.sm.go(State.ABORT_NOT_ARMED, d, r)
-            return
-        pilot_start = self.cfg.app.start == "pilot"
-        if st.offboard:
-            self.sm.go(State.HANDBACK, d)
-            try:
-                await self.link.stop_offboard()  # waits until PX4 reports HOLD
-            except Exception as e:
-                # PX4 did not confirm HOLD: stop MAVSDK's resending so PX4's offboard-loss failsafe acts.
-                await self.link.close()
-                self.sm.go(State.SAFE_FAILSAFE_LINK, f"{d}; offboard stop failed ({e}): streaming stopped", r)
-                return
-            st = State.HANDBACK
-        elif st in (State.TAKEOFF, State.LAND) or (st is State.ACQUIRE and not pilot_start):
-            # PX4 is flying its own take-off, landing or hold for us: command Hold and see it confirmed.
-            try:
-                await self.link.hold()
-            except Exception as e:
-                await self.link.close()
-                self._go_seen(f"{d}; Hold not confirmed ({e}); we stopped commanding", r)
-                return
-        elif pilot_start:  # ACQUIRE or WAIT_PILOT with the pilot flying: the pilot keeps the vehicle
-            await self.link.close()
-            self._go_seen(d + "; we never commanded", r)
-            return
-        if self.cfg.safety.land_after_abort and self.link.flight_mode == "HOLD":
-            if st is not State.HANDBACK:
-                self.sm.go(State.HANDBACK, d)
-            self.sm.go(State.LAND, d + "; land_after_abort")
-            await self.link.land()
-            await self.link.wait_landed_and_disarm()
-            self._go_seen(d, r)
-            return
-        self._go_seen(d, r)
-
-    def _go_seen(self, detail: str, reason: Reason) -> None:
-        """The terminal state that names what the autopilot last reported."""
-        link = self.link
-        mode, armed, landed = link.flight_mode, link.armed, link.landed_state
-        if armed is False and landed == "ON_GROUND":
-            self.sm.go(State.SAFE_LANDED, f"{detail}; landed and disarmed", reason)
-        elif armed is False:
-            self.sm.go(State.DISARMED, f"{detail}; vehicle disarmed in the air (landed state {landed})", reason)
-        elif mode == "HOLD":
-            self.sm.go(State.SAFE_HOLD, f"{detail}; PX4 holds", reason)
-        elif mode in PILOT_MODES:
-            self.sm.go(State.SAFE_PILOT, f"{detail}; the pilot has the vehicle in {mode}", reason)
-        else:
-            self.sm.go(State.AUTOPILOT, f"{detail}; PX4 flies in {mode} (armed {armed}, landed state {landed})",
-                       reason)
-
-    async def _last_resort(self, fault: Abort, err: BaseException) -> None:
-        """The safe end itself failed: stop streaming (PX4's failsafe acts) and name that state."""
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(self.link.close(), 10.0)
-        detail = f"{fault.detail}; safe end failed ({type(err).__name__}: {err}): streaming stopped"
-        if self.sm.done:
-            return
-        if self.sm.state in GROUND_STATES and self.link.armed is not True:
-            self.sm.go(State.ABORT_NOT_ARMED, detail, fault.reason)
-        elif self.sm.state in GROUND_STATES:
-            self._go_seen(detail, fault.reason)
-        else:
-            self.sm.go(State.SAFE_FAILSAFE_LINK, detail, fault.reason)
-
-    def _classify(self, e: BaseException) -> Abort:
-        text = f"{type(e).__name__}: {e}"
-        table: list[tuple[str, Reason]] = [
-            ("ArmDenied", Reason.ARM_DENIED), ("OffboardDenied", Reason.OFFBOARD_DENIED),
-            ("CommandTimeout", Reason.COMMAND_TIMEOUT), ("LinkLost", Reason.LINK_LOST),
-            ("ConnectFailed", Reason.CONNECT_FAILED), ("PreflightFailed", Reason.PREFLIGHT_FAILED),
-            ("NotHealthy", Reason.PREFLIGHT_FAILED), ("TakeoffFailed", Reason.COMMAND_TIMEOUT),
-            ("OffboardLost", Reason.PILOT_TAKEOVER), ("CommandDenied", Reason.COMMAND_TIMEOUT),
-            ("SetpointRejected", Reason.SETPOINT_INVALID),
-        ]
-        for name, reason in table:
-            exc = getattr(linkmod, name, None)
-            if isinstance(exc, type) and isinstance(e, exc):
-                return Abort(reason, text)
-        if isinstance(e, CameraFailed):
-            return Abort(Reason.CAMERA_FAILED, text)
-        if isinstance(e, (TimeoutError, ConnectionError)) and self.sm.state is State.CONNECT:
-            return Abort(Reason.CONNECT_FAILED, text)
-        if isinstance(e, TimeoutError):
-            return Abort(Reason.COMMAND_TIMEOUT, text)
-        return Abort(Reason.EXCEPTION, text)
-
-    # ------------------------------------------------------------------------------ monitors
-    async def _monitor(self) -> None:
-        """Telemetry to the log at 20 Hz; pilot takeover while PX4 flies its own modes for us.
-
-        Link loss, the link's setpoint watchdog and PX4 leaving OFFBOARD arrive as link events
-        (``on_link_event``); the link also refuses setpoints after any of them.
-        """
-        while not self.sm.done:
-            await asyncio.sleep(0.05)
-            if not self._connected:
-                continue
-            self._log_telemetry()
-            self._check_vehicle()
-
-    def _check_vehicle(self) -> None:
-        """What telemetry shows, in every state: link loss, disarm in the air, a mode nobody here asked for.
-
-        Runs every 50 ms (the monitor) and before an exception is classified, so a takeover that made a
-        command fail is named as the takeover. PX4 reports mode and arming at 1 Hz; the 0.5 s budget
-        counts from the heartbeat that shows them.
-        """
-        if not self._connected or self.sm.done or self._fault is not None:
-            return
-        st, link = self.sm.state, self.link
-        mode, armed = link.flight_mode, link.armed
-        if not link.link_ok:
-            self.trip(Reason.LINK_LOST, f"no telemetry for {link.telemetry_age:.1f} s")
-            return
-        pilot_start = self.cfg.app.start == "pilot"
-        airborne_state = st not in GROUND_STATES and st not in (State.WAIT_PILOT, State.LAND)
-        if airborne_state and armed is False:
-            self.trip(Reason.DISARMED, f"vehicle disarmed during {st.value} (mode {mode}, landed state "
-                      f"{link.landed_state})")
-            return
-        expected = EXPECTED_MODES.get(st)
-        if expected is None or mode is None or mode in expected or armed is False:
-            return
-        if pilot_start and (st is State.ACQUIRE or (st is State.ENGAGE and not link.offboard_active)):
-            return  # the pilot flies in a mode of the pilot's choosing until PX4 confirms OFFBOARD
-        if st.offboard and self._offboard_start is not None and not self._offboard_start.done():
-            return  # PX4 is switching to OFFBOARD (the frame loop runs on); a refusal ends the start with its error
-        if st.offboard and link.offboard_active:
-            return  # the link's own offboard watchdog reports it (offboard_lost) and stops commanding first
-        who = Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE
-        self.trip(who, f"flight mode changed to {mode} during {st.value}")
-
-    async def _watchdog(self) -> None:
-        """No fresh setpoint while we own the vehicle -> hand over (MAVSDK keeps resending the old one)."""
-        limit = self.cfg.safety.perception_stall_timeout
-        while not self.sm.done:
-            await asyncio.sleep(min(0.05, limit / 4))
-            if self._deadman is not None:
-                self._deadman.beat()  # the loop runs: the deadman thread stays quiet
-            if self.sm.state.offboard and self._fault is None:
-                age = self.clock() - self._last_setpoint
-                if age > limit:
-                    self.trip(Reason.PERCEPTION_STALL,
-                              f"watchdog: no fresh setpoint for {age:.2f} s (limit {limit:.2f} s)")
-
-    def _last_words(self, text: str) -> None:
-        """From the deadman thread, the loop being stuck: one event line, then everything to the OS."""
-        self.log.event(text, "error")
-        self.log.flush()
-
-    async def _status_loop(self) -> None:
-        wd = Notifier.watchdog_interval()
-        period = min(self.cfg.app.status_interval, wd) if wd else self.cfg.app.status_interval
-        next_status = 0.0
-        while True:
-            self.notifier.watchdog()  # proves the event loop runs; systemd kills us if it stops
-            now = self.clock()
-            if now >= next_status:
-                next_status = now + self.cfg.app.status_interval
-                text = self._status_text()
-                self.notifier.status(text)
-                if self.status_line and self.stderr is not None:
-                    # One updating line on a terminal; plain lines in a file or the journal.
-                    self.stderr.write("\r\x1b[K" + text if self._tty else text + "\n")
-                    self.stderr.flush()
-            if self.sm.done:
-                if self.status_line and self.stderr is not None and self._tty:
-                    self.stderr.write("\n")
-                return
-            await asyncio.sleep(period)
-
-    def _status_text(self) -> str:
-        parts = [f"t={self.log.now():5.1f}s", self.sm.state.value]
-        if self._connected:
-            parts.append(f"mode={self.link.flight_mode}")
-            b = self._baro_rel()
-            if b is not None:
-                parts.append(f"alt={b:5.1f}m")
-        out = self._last_out
-        if out is not None and self.sm.state.offboard:
-            parts.append(f"ctrl={out.mode} thr={out.setpoint.thrust:.2f} ldot={out.lambda_dot:+.2f}")
-        if self.stats.latencies_ms:
-            parts.append(f"lat_p50={np.median(self.stats.latencies_ms[-60:]):.1f}ms")
-        parts.append(f"gates={self.stats.gates_passed}")
-        return " ".join(parts)
 
     # ------------------------------------------------------------------------------ logging
     def _on_transition(self, tr: Transition) -> None:

@@ -159,8 +159,7 @@ async def _escaped(app: FlightApp, link: Any, err: Exception, stderr: Any) -> tu
     commanded it) and the state named is the one that is true then: not armed on the ground,
     PX4's own failsafe in the air.
     """
-    from companion.app.flight import GROUND_STATES
-    from companion.app.states import Reason, State
+    from companion.app.states import GROUND_STATES, Reason, State
 
     detail = f"{type(err).__name__}: {err}"
     print(f"companion: flight logic failed: {detail}", file=stderr, flush=True)

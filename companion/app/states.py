@@ -140,3 +140,19 @@ class StateMachine:
 
     def path(self) -> list[State]:
         return [self.state if not self.history else self.history[0].src] + [h.dst for h in self.history]
+
+
+# States before the vehicle may fly: a failure there can only mean "not armed" (or found armed).
+GROUND_STATES = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
+# Modes a pilot selects (mavsdk FlightMode names); any other mode we did not ask for is PX4's own choice.
+PILOT_MODES = frozenset({"POSCTL", "ALTCTL", "MANUAL", "STABILIZED", "ACRO", "RATTITUDE"})
+# Modes the vehicle may show while the app is in a state; anything else is noticed (companion/app/states.py).
+EXPECTED_MODES: dict[State, frozenset[str]] = {
+    State.TAKEOFF: frozenset({"TAKEOFF", "HOLD"}),
+    State.ACQUIRE: frozenset({"HOLD"}),
+    State.ENGAGE: frozenset({"HOLD", "OFFBOARD"}),  # HOLD until PX4 confirms OFFBOARD at the first engage
+    State.PASS: frozenset({"OFFBOARD"}),
+    State.RECOVER: frozenset({"OFFBOARD"}),
+    State.HANDBACK: frozenset({"OFFBOARD", "HOLD"}),
+    State.LAND: frozenset({"LAND", "HOLD"}),  # HOLD until PX4 shows the LAND we commanded
+}

@@ -155,9 +155,9 @@ def test_printed_gate_line_and_summary_truth_come_from_one_computation(tmp_path,
     """The disagreement seen on a PX4 flight (printed 0.05 m, summary.json 0.121 m): the printed line re-scored
     the log (truth rows stamped at the telemetry loop's time, the same sample repeated) while summary.json's
     truth is the live judge (each sample at its arrival time). Same samples, two paths: now one number."""
-    from companion.sim.appflight import print_flight_report
     from companion.flightlog import flight_crossings
     from companion.logtools import summarise
+    from companion.sim.appflight import print_flight_report
 
     summary = _flight_with_judge(tmp_path / "f")
     (g,) = summary["truth"]["gates"]

@@ -1,0 +1,140 @@
+"""What every fault does: bring the vehicle to one named safe state that is TRUE of it.
+
+A part of the flight app (companion/app/flight.py ``FlightApp``): HOLD only when PX4 reports HOLD, landed only when
+landed and disarmed; otherwise the state names what the autopilot reports. Any exception the sequence raises is
+classified into a ``Reason`` (the exit code) here too.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+from typing import TYPE_CHECKING, Any
+
+from companion.app import link as linkmod
+from companion.app.camera import CameraFailed
+from companion.app.states import GROUND_STATES, PILOT_MODES, Reason, State
+from companion.limits import Abort
+
+if TYPE_CHECKING:
+    from companion.app.states import StateMachine
+    from companion.config import Config
+
+
+class SafeEnds:
+    """The safe-end half of ``FlightApp`` (a mixin: it works on the app's state machine, link and config)."""
+
+    cfg: Config
+    link: Any
+    sm: StateMachine
+    _last_setpoint: float
+
+    async def _safe_end(self, fault: Abort) -> None:
+        """Bring the vehicle to one named state that is TRUE of it: HOLD only when PX4 reports HOLD, landed
+        only when landed and disarmed; otherwise the state names what the autopilot reports."""
+        st, r, d = self.sm.state, fault.reason, fault.detail
+        self._last_setpoint = math.inf  # the watchdog has nothing more to guard
+        if r is Reason.LINK_LOST:
+            await self.link.close()
+            self.sm.go(State.SAFE_FAILSAFE_LINK, d + "; streaming stopped, PX4's own failsafe acts", r)
+            return
+        if r in (Reason.PILOT_TAKEOVER, Reason.AUTOPILOT_MODE, Reason.DISARMED):
+            # Someone else has the vehicle: no mode change of ours, never offboard again; closing the link
+            # ends MAVSDK's resending too.
+            await self.link.close()
+            self._go_seen(d + "; we stopped commanding", r)
+            return
+        if r is Reason.VEHICLE_BUSY and st in GROUND_STATES:
+            self.sm.go(State.REFUSED, d, r)
+            return
+        if st in GROUND_STATES:
+            if self.link.armed is True:  # e.g. the arm ACK was lost but PX4 armed: say so, do not claim "not armed"
+                self._go_seen(d + "; the vehicle is armed", r)
+            else:
+                self.sm.go(State.ABORT_NOT_ARMED, d, r)
+            return
+        pilot_start = self.cfg.app.start == "pilot"
+        if st.offboard:
+            self.sm.go(State.HANDBACK, d)
+            try:
+                await self.link.stop_offboard()  # waits until PX4 reports HOLD
+            except Exception as e:
+                # PX4 did not confirm HOLD: stop MAVSDK's resending so PX4's offboard-loss failsafe acts.
+                await self.link.close()
+                self.sm.go(State.SAFE_FAILSAFE_LINK, f"{d}; offboard stop failed ({e}): streaming stopped", r)
+                return
+            st = State.HANDBACK
+        elif st in (State.TAKEOFF, State.LAND) or (st is State.ACQUIRE and not pilot_start):
+            # PX4 is flying its own take-off, landing or hold for us: command Hold and see it confirmed.
+            try:
+                await self.link.hold()
+            except Exception as e:
+                await self.link.close()
+                self._go_seen(f"{d}; Hold not confirmed ({e}); we stopped commanding", r)
+                return
+        elif pilot_start:  # ACQUIRE or WAIT_PILOT with the pilot flying: the pilot keeps the vehicle
+            await self.link.close()
+            self._go_seen(d + "; we never commanded", r)
+            return
+        if self.cfg.safety.land_after_abort and self.link.flight_mode == "HOLD":
+            if st is not State.HANDBACK:
+                self.sm.go(State.HANDBACK, d)
+            self.sm.go(State.LAND, d + "; land_after_abort")
+            await self.link.land()
+            await self.link.wait_landed_and_disarm()
+            self._go_seen(d, r)
+            return
+        self._go_seen(d, r)
+
+    def _go_seen(self, detail: str, reason: Reason) -> None:
+        """The terminal state that names what the autopilot last reported."""
+        link = self.link
+        mode, armed, landed = link.flight_mode, link.armed, link.landed_state
+        if armed is False and landed == "ON_GROUND":
+            self.sm.go(State.SAFE_LANDED, f"{detail}; landed and disarmed", reason)
+        elif armed is False:
+            self.sm.go(State.DISARMED, f"{detail}; vehicle disarmed in the air (landed state {landed})", reason)
+        elif mode == "HOLD":
+            self.sm.go(State.SAFE_HOLD, f"{detail}; PX4 holds", reason)
+        elif mode in PILOT_MODES:
+            self.sm.go(State.SAFE_PILOT, f"{detail}; the pilot has the vehicle in {mode}", reason)
+        else:
+            self.sm.go(State.AUTOPILOT, f"{detail}; PX4 flies in {mode} (armed {armed}, landed state {landed})",
+                       reason)
+
+    async def _last_resort(self, fault: Abort, err: BaseException) -> None:
+        """The safe end itself failed: stop streaming (PX4's failsafe acts) and name that state."""
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self.link.close(), 10.0)
+        detail = f"{fault.detail}; safe end failed ({type(err).__name__}: {err}): streaming stopped"
+        if self.sm.done:
+            return
+        if self.sm.state in GROUND_STATES and self.link.armed is not True:
+            self.sm.go(State.ABORT_NOT_ARMED, detail, fault.reason)
+        elif self.sm.state in GROUND_STATES:
+            self._go_seen(detail, fault.reason)
+        else:
+            self.sm.go(State.SAFE_FAILSAFE_LINK, detail, fault.reason)
+
+    def _classify(self, e: BaseException) -> Abort:
+        text = f"{type(e).__name__}: {e}"
+        table: list[tuple[str, Reason]] = [
+            ("ArmDenied", Reason.ARM_DENIED), ("OffboardDenied", Reason.OFFBOARD_DENIED),
+            ("CommandTimeout", Reason.COMMAND_TIMEOUT), ("LinkLost", Reason.LINK_LOST),
+            ("ConnectFailed", Reason.CONNECT_FAILED), ("PreflightFailed", Reason.PREFLIGHT_FAILED),
+            ("NotHealthy", Reason.PREFLIGHT_FAILED), ("TakeoffFailed", Reason.COMMAND_TIMEOUT),
+            ("OffboardLost", Reason.PILOT_TAKEOVER), ("CommandDenied", Reason.COMMAND_TIMEOUT),
+            ("SetpointRejected", Reason.SETPOINT_INVALID),
+        ]
+        for name, reason in table:
+            exc = getattr(linkmod, name, None)
+            if isinstance(exc, type) and isinstance(e, exc):
+                return Abort(reason, text)
+        if isinstance(e, CameraFailed):
+            return Abort(Reason.CAMERA_FAILED, text)
+        if isinstance(e, (TimeoutError, ConnectionError)) and self.sm.state is State.CONNECT:
+            return Abort(Reason.CONNECT_FAILED, text)
+        if isinstance(e, TimeoutError):
+            return Abort(Reason.COMMAND_TIMEOUT, text)
+        return Abort(Reason.EXCEPTION, text)
