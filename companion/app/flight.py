@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from companion.app import link as linkmod
+from companion.app import linkerrors as linkmod
 from companion.app import preflight
 from companion.app.camera import CameraFailed, CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
@@ -40,6 +40,7 @@ from companion.hover import HoverThrustEstimator, use_hover_thrust
 
 if TYPE_CHECKING:
     from companion.config import Config
+    from companion.vehicle import TruthSource
 
 GROUND_STATES = frozenset({State.INIT, State.CONNECT, State.PREFLIGHT, State.ARM})
 # Modes a pilot selects (mavsdk FlightMode names); any other mode we did not ask for is PX4's own choice.
@@ -102,6 +103,7 @@ class FlightApp:
         perception_in_thread: bool = False,
         judge: GateJudge | None = None,
         confirm: preflight.Confirm | None = None,
+        truth: TruthSource | None = None,
     ) -> None:
         self.cfg = cfg
         self.link = link
@@ -113,6 +115,7 @@ class FlightApp:
         self.status_line = status_line
         self.perception_in_thread = perception_in_thread
         self.judge = judge  # ground truth (simulators only): scores the gates, never steers
+        self.truth = truth  # where the vehicle is: the truth topic and the judge only, never the controller
         self._verdict: str | None = None  # the normal end's outcome line (companion/app/outcome.py)
         self.confirm = confirm  # asks the operator to confirm the pre-flight summary; None: do not ask
         self.clock = time.monotonic
@@ -774,14 +777,14 @@ class FlightApp:
                        latency_ms=lat_ms)
 
     def _log_telemetry(self) -> None:
-        truth = log_telemetry(self.log, self.link)
+        truth = log_telemetry(self.log, self.link, self.truth)
         if truth is not None and self.judge is not None:
             self.judge.vehicle(truth.t_rx, truth.position_ned)
 
 
-def log_telemetry(log: FlightLog, link: Any) -> Any:
-    """One row of the telemetry topic and, where the link has it, of truth (the app and shadow mode alike).
-    Returns the truth sample logged (None without truth) for the app's gate judge."""
+def log_telemetry(log: FlightLog, link: Any, truth: TruthSource | None = None) -> Any:
+    """One row of the telemetry topic and, where ``truth`` has a sample, of truth (the app and shadow mode
+    alike). Returns the truth sample logged (None without truth) for the app's gate judge."""
     att = link.attitude
     q = att.q_wxyz if att is not None else (None,) * 4
     r = p = y = None
@@ -796,11 +799,11 @@ def log_telemetry(log: FlightLog, link: Any) -> Any:
               qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
               baro_alt_m=None if b is None else b.altitude_raw_m, flight_mode=link.flight_mode, armed=link.armed,
               landed_state=link.landed_state, **extra)
-    truth = link.truth_for_log  # log only: scoring and plots, never an input of the controller
-    if truth is not None:
-        pn, vn = truth.position_ned, truth.velocity_ned
+    sample = None if truth is None else truth.latest()  # log only: scoring and plots, never the controller
+    if sample is not None:
+        pn, vn = sample.position_ned, sample.velocity_ned
         log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
-    return truth
+    return sample
 
 
 def log_detection(log: FlightLog, frame: Frame, box: Any, valid: bool) -> None:

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from companion.app.flight import FlightApp
     from companion.app.states import Reason
     from companion.config import Config
+    from companion.vehicle import TruthSource
 
 
 def register(subparsers: Any) -> None:
@@ -191,37 +192,42 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None,
+                 truth: TruthSource | None = None) -> tuple[Any, Any, bool]:
     """(camera source, perception, run perception in a thread) for the configured camera; the synthetic
-    camera's gates go to the log and to ``judge`` (companion/app/outcome.py, ground truth).
+    camera draws from ``truth``'s pose and its gates go to the log and to ``judge``
+    (companion/app/outcome.py, ground truth).
 
     Every source is wrapped in CheckedCamera: each frame is checked for plausibility (size, type,
     timestamps, frozen content) before perception sees it.
     """
     from companion.app.camera import CheckedCamera
 
-    cam, perception, in_thread = _build_camera(cfg, link, log, judge)
+    cam, perception, in_thread = _build_camera(cfg, link, log, judge, truth)
     return CheckedCamera.from_config(cam, cfg), perception, in_thread
 
 
-def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None,
+                  truth: TruthSource | None = None) -> tuple[Any, Any, bool]:
     from companion.app.flight import gate_logger
     from companion.app.synthcam import SyntheticCamera, VehiclePose
 
     if cfg.app.camera == "synthetic":
+        if truth is None:
+            raise ValueError("the synthetic camera draws from a truth source (open_truth or LinkPositionTruth)")
 
         def pose() -> VehiclePose | None:
             # Sensor simulation only: the pose draws the picture; the controller never sees it.
-            truth, att = link.truth_for_log, link.attitude
-            if truth is None or att is None:
+            att = link.attitude
+            if truth.latest() is None or att is None:
                 return None
             # Stamped with the attitude sample's time: the frame is "captured" at the instant whose
             # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
-            source = getattr(link, "truth_source", None)
-            if source is not None:  # a simulator's truth (PX4 SIH): its true pose at that instant
-                true = source.at(att.t_rx)
-                return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
-            return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
+            # PX4 SIH's truth: its true pose at that instant; the link's: its newest position, PX4's attitude.
+            true = truth.at(att.t_rx)
+            if true is None:
+                return None
+            return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
 
         cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log, judge))
         if cam.render == "geometric":
@@ -284,6 +290,7 @@ async def _fly_locked(
     from companion.app.notify import Notifier
     from companion.app.outcome import GateJudge
     from companion.app.states import Reason
+    from companion.app.telemetry import LinkPositionTruth
     from companion.config import config_as_dict
     from companion.flightlog import FlightLog, FlightLogError
 
@@ -297,13 +304,14 @@ async def _fly_locked(
     app: FlightApp | None = None
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
                                    else log.event(f"link {kind} {detail}"))
-    truth = None
+    truth: TruthSource | None = None
     try:
-        from companion.px4sitl.truth import attach_truth
+        from companion.px4sitl.truth import open_truth
 
-        truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
+        # PX4 SIH's ground truth for the camera and the score (px4.truth_url), else the link's own position.
+        truth = open_truth(cfg) or LinkPositionTruth(link)
         judge = GateJudge()  # ground truth, where a simulator provides it: scores the gates, never steers
-        camera, perception, in_thread = build_camera(cfg, link, log, judge)
+        camera, perception, in_thread = build_camera(cfg, link, log, judge, truth)
         if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
 
@@ -311,7 +319,7 @@ async def _fly_locked(
                                      link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
                         status_line=status_line, perception_in_thread=in_thread, judge=judge,
-                        confirm=confirm)
+                        confirm=confirm, truth=truth)
         loop = asyncio.get_running_loop()
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):

@@ -30,6 +30,7 @@ from companion.app.flight import log_detection, log_telemetry
 
 if TYPE_CHECKING:
     from companion.config import Config
+    from companion.vehicle import TruthSource
 
 SHADOW_STATE = "SHADOW"
 _COMMANDING = frozenset({"arm", "disarm", "takeoff", "land", "hold", "start_offboard", "stop_offboard", "set_setpoint",
@@ -60,6 +61,7 @@ async def shadow(
     from companion.app.link import VehicleLink
     from companion.app.main import build_camera
     from companion.app.states import Reason
+    from companion.app.telemetry import LinkPositionTruth
     from companion.config import config_as_dict
     from companion.flightlog import FlightLog
 
@@ -76,16 +78,17 @@ async def shadow(
             loop.add_signal_handler(sig, stop.set)
     session = _Session(cfg, ro, log, stderr)
     reason, detail = Reason.OK, "shadow session ended"
-    truth = None
+    truth: TruthSource | None = None
     try:
-        from companion.px4sitl.truth import attach_truth
+        from companion.px4sitl.truth import open_truth
 
-        truth = attach_truth(cfg, link)  # PX4 SIH's true pose for a synthetic camera (px4.truth_url), never control
+        # PX4 SIH's true pose for a synthetic camera (px4.truth_url), else the link's own position; never control.
+        truth = session.truth = open_truth(cfg) or LinkPositionTruth(ro)
         log.state("INIT", "CONNECT", f"connecting to {cfg.link.url} (shadow: read-only)")
         await ro.connect()
         await ro.wait_link_ok(cfg.link.connect_timeout)
         await session.read_hover()
-        camera, perception, in_thread = build_camera(cfg, ro, log)
+        camera, perception, in_thread = build_camera(cfg, ro, log, truth=truth)
         if record is not None:  # --record: the frames the pilot's flight showed, for labelling and replay
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
 
@@ -139,6 +142,7 @@ class _Session:
         self.stats = {"frames": 0, "setpoints": 0, "engagements": 0, "passes": 0}
         self.hover_source = "config"
         self._baro0: float | None = None
+        self.truth: TruthSource | None = None  # logged in the truth topic only
 
     @staticmethod
     def connected_ok(link: Any) -> bool:
@@ -249,7 +253,7 @@ class _Session:
 
     async def _telemetry(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
-            log_telemetry(self.log, self.link)
+            log_telemetry(self.log, self.link, self.truth)
             await asyncio.sleep(0.05)
 
     def summary(self, reason: Any, detail: str) -> dict[str, Any]:
