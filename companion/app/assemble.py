@@ -18,38 +18,44 @@ if TYPE_CHECKING:
     from companion.app.outcome import GateJudge
     from companion.config import Config
     from companion.flightlog import FlightLog
+    from companion.vehicle import TruthSource
 
 
-def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+def build_camera(cfg: Config, link: Any, log: Any, judge: Any = None,
+                 truth: TruthSource | None = None) -> tuple[Any, Any, bool]:
     """(camera source, perception, run perception in a thread) for the configured camera; the synthetic
-    camera's gates go to the log and to ``judge`` (companion/app/outcome.py, ground truth).
+    camera draws from ``truth``'s pose and its gates go to the log and to ``judge``
+    (companion/app/outcome.py, ground truth).
 
     Every source is wrapped in CheckedCamera: each frame is checked for plausibility (size, type,
     timestamps, frozen content) before perception sees it.
     """
     from companion.app.camera import CheckedCamera
 
-    cam, perception, in_thread = _build_camera(cfg, link, log, judge)
+    cam, perception, in_thread = _build_camera(cfg, link, log, judge, truth)
     return CheckedCamera.from_config(cam, cfg), perception, in_thread
 
 
-def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None) -> tuple[Any, Any, bool]:
+def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None,
+                  truth: TruthSource | None = None) -> tuple[Any, Any, bool]:
     from companion.app.synthcam import SyntheticCamera, VehiclePose
 
     if cfg.app.camera == "synthetic":
+        if truth is None:
+            raise ValueError("the synthetic camera draws from a truth source (open_truth or LinkPositionTruth)")
 
         def pose() -> VehiclePose | None:
             # Sensor simulation only: the pose draws the picture; the controller never sees it.
-            truth, att = link.truth_for_log, link.attitude
-            if truth is None or att is None:
+            att = link.attitude
+            if truth.latest() is None or att is None:
                 return None
             # Stamped with the attitude sample's time: the frame is "captured" at the instant whose
             # attitude drew it, so the controller's attitude-at-capture lookup sees the same attitude.
-            source = getattr(link, "truth_source", None)
-            if source is not None:  # a simulator's truth (PX4 SIH): its true pose at that instant
-                true = source.at(att.t_rx)
-                return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
-            return VehiclePose(att.t_rx, truth.position_ned, att.q_wxyz)
+            # PX4 SIH's truth: its true pose at that instant; the link's: its newest position, PX4's attitude.
+            true = truth.at(att.t_rx)
+            if true is None:
+                return None
+            return VehiclePose(att.t_rx, true.position_ned, true.q_wxyz)
 
         cam = SyntheticCamera(cfg, pose, on_gate=gate_logger(log, judge))
         if cam.render == "geometric":

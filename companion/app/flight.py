@@ -42,6 +42,7 @@ from companion.limits import Abort
 
 if TYPE_CHECKING:
     from companion.config import Config
+    from companion.vehicle import TruthSource, VehicleControl
 
 class _ClearLine:
     """A text stream that clears the terminal line (the live status line) before each message."""
@@ -78,7 +79,7 @@ class FlightApp(Monitors, SafeEnds):
     def __init__(
         self,
         cfg: Config,
-        link: Any,
+        link: VehicleControl,
         camera: CameraSource,
         perception: Perception,
         log: FlightLog,
@@ -89,6 +90,7 @@ class FlightApp(Monitors, SafeEnds):
         perception_in_thread: bool = False,
         judge: GateJudge | None = None,
         confirm: preflight.Confirm | None = None,
+        truth: TruthSource | None = None,
     ) -> None:
         self.cfg = cfg
         self.link = link
@@ -100,6 +102,7 @@ class FlightApp(Monitors, SafeEnds):
         self.status_line = status_line
         self.perception_in_thread = perception_in_thread
         self.judge = judge  # ground truth (simulators only): scores the gates, never steers
+        self.truth = truth  # where the vehicle is: the truth topic and the judge only, never the controller
         self._verdict: str | None = None  # the normal end's outcome line (companion/app/outcome.py)
         self.confirm = confirm  # asks the operator to confirm the pre-flight summary; None: do not ask
         self.clock = time.monotonic
@@ -491,6 +494,6 @@ class FlightApp(Monitors, SafeEnds):
         log_step(self.log, frame.t - self.log.t0, step, self.sm.state.value, mode, lat_ms)
 
     def _log_telemetry(self) -> None:
-        truth = log_telemetry(self.log, self.link)
+        truth = log_telemetry(self.log, self.link, self.truth)
         if truth is not None and self.judge is not None:
             self.judge.vehicle(truth.t_rx, truth.position_ned)

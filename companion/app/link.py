@@ -27,14 +27,16 @@ Public API (names are stable; the state machine and its tests rely on them)::
     link.landed_state -> str ("ON_GROUND", "IN_AIR", "TAKING_OFF", "LANDING", "UNKNOWN")
     link.baro -> BaroSample (altitude_m above the reference taken at arm()), link.baro_altitude -> float|None
     link.link_ok -> bool, link.check_link() (raises LinkLost), link.offboard_active -> bool
-    link.truth_for_log -> TruthForLog | None  (position/velocity NED: ONLY for the flight log)
+    link.position_for_log -> TruthForLog | None  (PX4's EKF position/velocity NED: ONLY for the log and scoring;
+                                                  as a truth source: companion.app.telemetry.LinkPositionTruth)
     link.status_text -> str | None (last STATUSTEXT), link.hover_thrust_source ("autopilot"|"config")
     link.events -> list[(t_monotonic, kind, detail)]; on_event(kind, detail) is called for each
     link.px4_events -> decoded PX4 events (companion/app/px4events.py); link.mode_reports -> heartbeats seen
 
-Exceptions: every one derives ``LinkError`` and carries a one-line message saying what failed and
-where: ConnectFailed, NotHealthy, ArmDenied, TakeoffFailed, OffboardDenied, OffboardLost,
-CommandDenied, CommandTimeout, LinkLost.
+Exceptions (companion/app/linkerrors.py): every one derives ``LinkError`` and carries a one-line message
+saying what failed and where: ConnectFailed, NotHealthy, ArmDenied, TakeoffFailed, OffboardDenied,
+OffboardLost, CommandDenied, CommandTimeout, LinkLost. Telemetry samples: companion/app/telemetry.py. The
+declared interface (what the app may use): companion/vehicle.py VehicleTelemetry / VehicleControl.
 
 Setpoints: anything with ``roll_deg, pitch_deg, yaw_deg`` (NED/FRD, absolute yaw) and ``thrust``
 (0..1, e.g. ``companion.guidance.Setpoint``), through the last-line envelope (companion/app/envelope.py):
@@ -45,8 +47,8 @@ Exposure: URLs that make mavsdk listen on every interface are refused unless
 ``link.allow_all_interfaces``; only ``link.system_id`` is flown; the attitude is read raw and only from
 ``link.component_id``, and impossible samples (non-finite, non-unit, time running back, tilt jumps) are
 rejected with ``telemetry_rejected`` events, ``telemetry_invalid`` when they persist. PX4 events (EVENT)
-are decoded and emitted as ``px4_event``. While offboard is active the link resends the latest setpoint at
-``link.setpoint_rate`` and runs a watchdog: no fresh ``set_setpoint`` for
+are decoded and emitted as ``px4_event``. While offboard is active (companion/app/offboard.py) the link
+resends the latest setpoint at ``link.setpoint_rate`` and runs a watchdog: no fresh ``set_setpoint`` for
 ``safety.perception_stall_timeout`` -> offboard is stopped (PX4 -> HOLD). This matters because
 MAVSDK itself resends the last setpoint at ~20 Hz for as long as the process lives, so PX4's own
 offboard-loss failsafe never fires if the control task dies. When the vehicle leaves OFFBOARD on its
@@ -58,200 +60,32 @@ A guard thread backs the watchdog up when the event loop itself stalls (2x the l
 from __future__ import annotations
 
 import asyncio
-import bisect
 import contextlib
 import functools
-import json
 import math
-import threading
 import time
-from collections import deque
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from companion.app.envelope import SetpointEnvelope
+from companion.app.linkerrors import (
+    ArmDenied,
+    CommandDenied,
+    CommandTimeout,
+    ConnectFailed,
+    LinkError,
+    LinkLost,
+    NotHealthy,
+    TakeoffFailed,
+    WrongAutopilot,
+)
+from companion.app.offboard import OffboardStreaming
+from companion.app.telemetry import AttitudeSample, BaroSample, ImuSample, TelemetryStreams, TruthForLog
 from companion.config_app import LinkConfig
-from companion.frames import R_from_quat_wxyz
 
 
-# ------------------------------------------------------------------------------------- exceptions
-class LinkError(RuntimeError):
-    """Base of every link failure; ``str(e)`` is one line: what failed and why."""
-
-
-class ConnectFailed(LinkError):
-    pass
-
-
-class NotHealthy(LinkError):
-    pass
-
-
-class ArmDenied(LinkError):
-    pass
-
-
-class TakeoffFailed(LinkError):
-    pass
-
-
-class OffboardDenied(LinkError):
-    pass
-
-
-class OffboardLost(LinkError):
-    """Offboard ended without the app asking: pilot takeover, PX4 failsafe or the link's watchdog."""
-
-
-class CommandDenied(LinkError):
-    pass
-
-
-class CommandTimeout(LinkError):
-    pass
-
-
-class LinkLost(LinkError):
-    pass
-
-
-class SetpointRejected(LinkError, ValueError):
-    """Upstream produced a setpoint that must never leave the app (non-finite): nothing was sent."""
-
-
-class WrongAutopilot(ConnectFailed):
-    """Heard an autopilot, but not the configured system (link.system_id)."""
-
-
-# -------------------------------------------------------------------------------------- samples
-@dataclass(frozen=True)
-class AttitudeSample:
-    q_wxyz: np.ndarray  # body FRD -> world NED, scalar first (PX4's attitude estimate)
-    t_vehicle: float  # s since autopilot boot
-    t_rx: float  # time.monotonic() when it arrived
-
-    @property
-    def R_ned_frd(self) -> np.ndarray:
-        return R_from_quat_wxyz(self.q_wxyz)
-
-
-class AttitudeHistory:
-    """The last second of attitude estimates, to pair a camera frame with the attitude at its capture time.
-
-    Rotating the box's ray with the attitude of a later moment turns the vehicle's own rotation during
-    the perception latency into apparent LOS motion (the simulator measured 1 m gate success 1.00 -> 0.33
-    at 100 ms). Interpolation is a normalised lerp between the two samples around ``t`` (at 50 Hz
-    neighbours differ by a degree or two, where nlerp and slerp agree to micro-radians).
-    """
-
-    def __init__(self, maxlen: int = 128) -> None:
-        self._t: deque[float] = deque(maxlen=maxlen)
-        self._q: deque[np.ndarray] = deque(maxlen=maxlen)
-
-    def add(self, t: float, q_wxyz: np.ndarray) -> None:
-        if self._t and t <= self._t[-1]:
-            return  # out of order or duplicate: keep the series monotonic
-        self._t.append(t)
-        self._q.append(np.asarray(q_wxyz, dtype=float))
-
-    def __len__(self) -> int:
-        return len(self._t)
-
-    def at(self, t: float) -> np.ndarray | None:
-        """Attitude (wxyz, NED/FRD) at time ``t``; the nearest sample outside the stored span."""
-        if not self._t:
-            return None
-        i = bisect.bisect_left(self._t, t)
-        if i == 0:
-            return self._q[0]
-        if i == len(self._t):
-            return self._q[-1]
-        t0, t1 = self._t[i - 1], self._t[i]
-        q0, q1 = self._q[i - 1], self._q[i]
-        if float(q0 @ q1) < 0.0:  # same rotation, other hemisphere: interpolate the short way
-            q1 = -q1
-        a = (t - t0) / (t1 - t0)
-        q = (1.0 - a) * q0 + a * q1
-        return q / math.sqrt(float(q @ q))
-
-
-@dataclass(frozen=True)
-class ImuSample:
-    accel_frd: np.ndarray  # specific force, m/s^2 (level at rest: [0, 0, -9.81])
-    gyro_frd: np.ndarray  # rad/s
-    t_vehicle: float
-    t_rx: float
-
-
-@dataclass(frozen=True)
-class BaroSample:
-    altitude_m: float  # barometric altitude above the reference (taken at arm(), else the first sample)
-    altitude_raw_m: float  # PX4's barometric altitude (ALTITUDE.altitude_monotonic)
-    t_rx: float
-
-
-@dataclass(frozen=True)
-class TruthForLog:
-    """Position/velocity from the autopilot's estimator (GPS/EKF or simulator truth).
-
-    For the flight log and for scoring ONLY. The controller must never see these: the method flies
-    from the camera and the IMU alone.
-    """
-
-    position_ned: np.ndarray  # m
-    velocity_ned: np.ndarray  # m/s
-    t_rx: float
-
-
-MAX_BODY_RATE = 15.0  # rad/s (860 deg/s): faster than any quad this app flies; a bigger jump is not a rotation
-JUMP_MARGIN = 0.35  # rad: estimator resets, jitter of the sample times
-
-
-def attitude_problem(q: list[Any], t_ms: int, prev_q: np.ndarray | None, prev_t_ms: int | None) -> str | None:
-    """Why an attitude sample cannot be PX4's estimate (None: plausible).
-
-    Non-finite or non-unit quaternions, vehicle time running backwards (a spoofer's clock, or an
-    autopilot reboot in flight) and tilt changes faster than MAX_BODY_RATE since the last accepted sample.
-    Only the tilt (the body z axis) is judged: PX4's EKF resets its yaw in flight (measured on SITL: a 47 deg
-    step in 20 ms during take-off), which is a real estimate, not a spoof.
-    """
-    if len(q) != 4 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in q):
-        return f"non-finite quaternion {q}"
-    n = math.sqrt(sum(float(v) * float(v) for v in q))
-    if not 0.9 <= n <= 1.1:
-        return f"quaternion norm {n:.3f} (not a rotation)"
-    if prev_t_ms is not None and t_ms < prev_t_ms:
-        return f"vehicle time went back from {prev_t_ms} to {t_ms} ms"
-    if prev_q is not None and prev_t_ms is not None:
-        z_new = R_from_quat_wxyz(np.asarray(q, float) / n)[:, 2]
-        z_old = R_from_quat_wxyz(prev_q)[:, 2]
-        angle = math.acos(max(-1.0, min(1.0, float(z_new @ z_old))))
-        dt = (t_ms - prev_t_ms) * 1e-3
-        if angle > MAX_BODY_RATE * dt + JUMP_MARGIN:
-            return f"tilt jumped {math.degrees(angle):.0f} deg in {dt * 1e3:.0f} ms"
-    return None
-
-
-class SetpointLike(Protocol):
-    roll_deg: float
-    pitch_deg: float
-    yaw_deg: float
-    thrust: float
-
-
-@dataclass(frozen=True)
-class _Sp:
-    roll_deg: float
-    pitch_deg: float
-    yaw_deg: float
-    thrust: float
-
-
-# ------------------------------------------------------------------------------------------ link
-class VehicleLink:
+class VehicleLink(TelemetryStreams, OffboardStreaming):
     """Async link to PX4 through mavsdk: connect, health, arm, takeoff, offboard attitude, land."""
 
     POLL = 0.02  # s between checks in the wait helpers
@@ -269,18 +103,8 @@ class VehicleLink:
     ) -> None:
         self.cfg = link if link is not None else LinkConfig()
         self._hover_fallback = float(hover_thrust_fallback)
-        self._thrust_min = float(thrust_min)
-        self._setpoint_timeout = float(setpoint_timeout)
-        self.envelope = SetpointEnvelope(max_tilt_deg, thrust_min)
-        self._clamps = 0
-        self._last_clamp_event = -math.inf
-        self._reject_limit = int(reject_limit)
-        self._rejects: deque[float] = deque(maxlen=1000)  # monotonic times of rejected telemetry samples
-        self._invalid_reported = False
-        self._att_t_ms: int | None = None  # vehicle time of the last accepted attitude
-        self._event_decoder: Any = None
-        self._event_seq: int | None = None
-        self.px4_events: list[Any] = []  # decoded PX4 events (companion.app.px4events.Px4Event)
+        self._init_offboard(thrust_min=thrust_min, setpoint_timeout=setpoint_timeout, max_tilt_deg=max_tilt_deg)
+        self._init_telemetry(reject_limit=reject_limit)
         self._on_event = on_event
         self.events: list[tuple[float, str, dict[str, Any]]] = []
         self.hover_thrust_source = "config"
@@ -296,37 +120,6 @@ class VehicleLink:
         self._tasks: list[asyncio.Task] = []
         self._inflight: set[asyncio.Future] = set()
         self._closed = False
-
-        self._attitude: AttitudeSample | None = None
-        self.attitude_history = AttitudeHistory()  # for frames: the attitude at capture time
-        self._imu: ImuSample | None = None
-        self._flight_mode: str | None = None
-        self._armed: bool | None = None
-        self._landed: str | None = None
-        self._health: Any = None
-        self._baro: BaroSample | None = None
-        self._baro_ref: float | None = None
-        self._baro_recent: deque[float] = deque(maxlen=10)
-        self._truth: TruthForLog | None = None
-        # Simulator ground truth (companion/px4sitl/truth.py), when there is one: replaces the EKF's
-        # position in truth_for_log. Scoring and the synthetic camera only.
-        self.truth_source: Any = None
-        self._status_text: str | None = None
-        self._last_rx = -math.inf
-        self._lost = False
-
-        self._mode_reports = 0
-        self._offboard_requested = False  # OFFBOARD asked for and not stopped since (PX4 may be in it unseen)
-        self._offboard_active = False
-        self._offboard_end_reason: str | None = None
-        self._latest_sp: _Sp | None = None
-        self._last_fresh = -math.inf
-        self._last_sent = -math.inf
-        self._switch_pending = False  # start_offboard under way: PX4 may fly our first setpoint, unconfirmed
-        self._switch_beat = -math.inf  # the event loop's beat meanwhile
-        self._offboard_tasks: list[asyncio.Task] = []
-        self._guard_stop = threading.Event()
-        self._guard_busy = False
 
     @classmethod
     def from_config(cls, cfg: Any, on_event: Callable[[str, dict[str, Any]], None] | None = None) -> VehicleLink:
@@ -376,10 +169,13 @@ class VehicleLink:
         return None if self._baro is None else self._baro.altitude_m
 
     @property
-    def truth_for_log(self) -> TruthForLog | None:
-        if self.truth_source is not None:
-            return self.truth_source.latest()
-        return self._truth
+    def position_for_log(self) -> TruthForLog | None:
+        """PX4's own position/velocity estimate (EKF, LOCAL_POSITION_NED): for the flight log and scoring ONLY.
+
+        The controller never sees it. A caller that wants it as truth wraps it explicitly
+        (companion.app.telemetry.LinkPositionTruth); a simulator's ground truth is a separate source.
+        """
+        return self._position
 
     @property
     def status_text(self) -> str | None:
@@ -446,6 +242,18 @@ class VehicleLink:
 
     def _why(self) -> str:
         return f" (autopilot says: {self._status_text})" if self._status_text else ""
+
+    async def _mapped_call(self, what: str, fn: Callable[[], Awaitable[Any]], timeout: float,
+                           error: type[Exception], refused: type[LinkError], refused_what: str) -> None:
+        """One mavsdk plugin call whose failure is ``error`` (ActionError, OffboardError): its TIMEOUT result is
+        CommandTimeout, any other result ``refused`` with the autopilot's reason."""
+        try:
+            await self._call(what, fn, timeout)
+        except error as e:
+            result = e.result.name  # type: ignore[attr-defined]
+            if result == "TIMEOUT":
+                raise CommandTimeout(f"{what}: no answer from the autopilot{self._why()}") from None
+            raise refused(f"{refused_what}: {result}{self._why()}") from None
 
     async def _wait_until(self, pred: Callable[[], bool], timeout: float, what: str,
                           exc: type[LinkError] = CommandTimeout) -> None:
@@ -553,164 +361,6 @@ class VehicleLink:
                                          f"{timeout:.1f} s; heard system(s) {sorted(heard)}")
                 raise ConnectFailed(f"no autopilot heard on {url} within {timeout:.1f} s")
             await asyncio.sleep(self.POLL if first is not None else 0.0)
-
-    def _start_telemetry(self) -> None:
-        tel = self._telemetry
-        streams: list[tuple[str, Callable[[], Any], Callable[[Any], None]]] = [
-            ("attitude", lambda: self._direct.subscribe_message("ATTITUDE_QUATERNION"), self._on_attitude_msg),
-            ("events", lambda: self._direct.subscribe_message("EVENT"), self._on_event_msg),
-            ("imu", tel.subscribe_imu, self._on_imu),
-            ("flight_mode", tel.subscribe_flight_mode, self._on_mode),
-            ("armed", tel.subscribe_armed, self._on_armed),
-            ("landed_state", tel.subscribe_landed_state, self._on_landed),
-            ("altitude", tel.subscribe_altitude, self._on_altitude),
-            ("position_velocity_ned", tel.subscribe_position_velocity_ned, self._on_posvel),
-            ("health", tel.subscribe_health, self._on_health),
-            ("status_text", tel.subscribe_status_text, self._on_status_text),
-        ]
-        for name, sub, handler in streams:
-            self._tasks.append(asyncio.create_task(self._follow(name, sub, handler), name=f"link:{name}"))
-        self._tasks.append(asyncio.create_task(self._monitor(), name="link:monitor"))
-
-    async def _follow(self, name: str, subscribe: Callable[[], Any], handle: Callable[[Any], None]) -> None:
-        # Each handler only stores the newest value, so the stream's queue never builds a backlog.
-        try:
-            async with contextlib.aclosing(subscribe()) as gen:
-                async for value in gen:
-                    handle(value)
-        except asyncio.CancelledError:
-            raise
-        except Exception as e:  # report, don't crash the app
-            self._emit("telemetry_error", stream=name, error=f"{type(e).__name__}: {e}")
-
-    def _from_autopilot(self, msg: Any) -> bool:
-        """Only the configured autopilot component (mavsdk already keeps other system ids apart)."""
-        return int(msg.component_id) == self.cfg.component_id
-
-    def _on_attitude_msg(self, msg: Any) -> None:
-        """ATTITUDE_QUATERNION as mavsdk received it (raw: mavsdk's telemetry takes it from any component)."""
-        if not self._from_autopilot(msg):
-            self._reject("attitude", f"from component {msg.component_id}, not {self.cfg.component_id}")
-            return
-        # From the autopilot's ids: the link is alive even if the sample is rejected below (that is
-        # TELEMETRY_INVALID's business, not LINK_LOST's).
-        self._last_rx = time.monotonic()
-        try:
-            f = json.loads(msg.fields_json)
-            q = [f["q1"], f["q2"], f["q3"], f["q4"]]
-            t_ms = int(f["time_boot_ms"])
-        except (ValueError, KeyError, TypeError) as e:
-            self._reject("attitude", f"unreadable ({type(e).__name__})")
-            return
-        self._on_attitude(q, t_ms)
-
-    def _on_attitude(self, q: list[Any], t_ms: int) -> None:
-        prev = self._attitude
-        why = attitude_problem(q, t_ms, None if prev is None else prev.q_wxyz, self._att_t_ms)
-        if why is not None:
-            self._reject("attitude", why)
-            return
-        now = time.monotonic()
-        qa = np.array(q, dtype=float)
-        self._attitude = AttitudeSample(qa / np.linalg.norm(qa), t_ms * 1e-3, now)
-        self._att_t_ms = t_ms
-        self.attitude_history.add(now, self._attitude.q_wxyz)
-        self._last_rx = now
-
-    def _reject(self, what: str, why: str) -> None:
-        """A telemetry sample the controller must not see: an event; a named abort when it persists."""
-        now = time.monotonic()
-        self._rejects.append(now)
-        recent = sum(1 for t in self._rejects if now - t <= 1.0)
-        if recent == 1 or recent % 50 == 0:  # the first of a burst, then every 50th: the log stays readable
-            self._emit("telemetry_rejected", what=what, why=why, recent=recent)
-        if recent >= self._reject_limit and not self._invalid_reported:
-            self._invalid_reported = True
-            self._emit("telemetry_invalid", what=what, why=why, count=recent)
-
-    def _on_event_msg(self, msg: Any) -> None:
-        """A PX4 event (1.15 reports through events, not STATUSTEXT): decoded, logged, the severe ones kept."""
-        if not self._from_autopilot(msg):
-            return
-        try:
-            fields = json.loads(msg.fields_json)
-        except ValueError:
-            return
-        seq = int(fields.get("sequence", -1))
-        if seq == self._event_seq:  # a resend
-            return
-        self._event_seq = seq
-        if self._event_decoder is None:
-            self._emit("px4_event", id=fields.get("id"), level="unknown", text=f"event {fields.get('id')}")
-            return
-        ev = self._event_decoder.decode(fields)
-        self.px4_events.append(ev)
-        if ev.name == "commander_disarmed_by":
-            # PX4 sends the event at once; its heartbeat shows the disarm up to 1 s later. A vehicle that
-            # just lost its motors must not get that second of setpoints.
-            self._on_armed(False)
-        if ev.level == "debug":
-            return
-        if ev.severe:
-            self._status_text = ev.text  # quoted by the next refused command ("autopilot says: ...")
-        self._emit("px4_event", name=ev.name, level=ev.level, text=ev.text, severe=ev.severe)
-
-    def _on_imu(self, m: Any) -> None:
-        a, w = m.acceleration_frd, m.angular_velocity_frd
-        self._imu = ImuSample(np.array([a.forward_m_s2, a.right_m_s2, a.down_m_s2]),
-                              np.array([w.forward_rad_s, w.right_rad_s, w.down_rad_s]),
-                              m.timestamp_us * 1e-6, time.monotonic())
-
-    def _on_mode(self, mode: Any) -> None:
-        self._mode_reports += 1  # one per HEARTBEAT: "seen after the command" means a later count
-        name = getattr(mode, "name", str(mode))
-        if name != self._flight_mode:
-            old, self._flight_mode = self._flight_mode, name
-            self._emit("mode", old=old, new=name)
-
-    def _on_armed(self, armed: bool) -> None:
-        if armed != self._armed:
-            self._armed = bool(armed)
-            self._emit("armed" if armed else "disarmed")
-
-    def _on_landed(self, state: Any) -> None:
-        name = getattr(state, "name", str(state))
-        if name != self._landed:
-            old, self._landed = self._landed, name
-            self._emit("landed_state", old=old, new=name)
-
-    def _on_altitude(self, a: Any) -> None:
-        raw = float(a.altitude_monotonic_m)
-        if not math.isfinite(raw):
-            return
-        self._baro_recent.append(raw)
-        if self._baro_ref is None:
-            self._baro_ref = raw
-        self._baro = BaroSample(raw - self._baro_ref, raw, time.monotonic())
-
-    def _on_posvel(self, pv: Any) -> None:
-        p, v = pv.position, pv.velocity
-        self._truth = TruthForLog(np.array([p.north_m, p.east_m, p.down_m]),
-                                  np.array([v.north_m_s, v.east_m_s, v.down_m_s]), time.monotonic())
-
-    def _on_health(self, h: Any) -> None:
-        self._health = h
-
-    def _on_status_text(self, st: Any) -> None:
-        self._status_text = str(st.text)
-        self._emit("status_text", text=self._status_text, type=getattr(st.type, "name", str(st.type)))
-
-    async def _monitor(self) -> None:
-        """Link-loss detector: no attitude message for link_lost_timeout -> lost (and back)."""
-        while True:
-            age = time.monotonic() - self._last_rx
-            if not self._lost and age > self.cfg.link_lost_timeout:
-                self._lost = True
-                self._emit("link_lost", age=age)
-            elif self._lost and age <= self.cfg.link_lost_timeout:
-                self._lost = False
-                self._emit("link_restored")
-            await asyncio.sleep(0.05)
 
     # ------------------------------------------------------------------------ health, params
     def _health_problems(self) -> list[str]:
@@ -872,221 +522,6 @@ class VehicleLink:
             await self._wait_until(lambda: self._armed is False, max(deadline - time.monotonic(), 1.0),
                                    "disarm: accepted but the vehicle is still armed")
         self._emit("landed_and_disarmed")
-
-    # ---------------------------------------------------------------------------------- offboard
-    def _validated(self, sp: SetpointLike) -> _Sp:
-        """The last-line envelope (companion/app/envelope.py): non-finite -> SetpointRejected, else clamped."""
-        try:
-            vals = (float(sp.roll_deg), float(sp.pitch_deg), float(sp.yaw_deg), float(sp.thrust))
-        except (AttributeError, TypeError, ValueError):
-            raise SetpointRejected(f"setpoint: need roll_deg, pitch_deg, yaw_deg, thrust numbers (got {sp!r})"
-                                   ) from None
-        try:
-            c = self.envelope.check(*vals)
-        except ValueError as e:
-            self._emit("envelope", action="refused", why=str(e))
-            raise SetpointRejected(str(e)) from None
-        if c.clamped:
-            now = time.monotonic()
-            self._clamps += 1
-            if now - self._last_clamp_event >= 1.0:  # one event a second at most, with the count since the last
-                self._emit("envelope", action="clamped", why=c.clamped, count=self._clamps)
-                self._clamps = 0
-                self._last_clamp_event = now
-        return _Sp(c.roll_deg, c.pitch_deg, c.yaw_deg, c.thrust)
-
-    async def _send(self, sp: _Sp) -> None:
-        from mavsdk.asyncio.plugins.offboard import Attitude
-
-        att = Attitude(sp.roll_deg, sp.pitch_deg, sp.yaw_deg, sp.thrust)
-        await self._call("send setpoint", lambda: self._offboard.set_attitude(att), 1.0)
-        self._last_sent = time.monotonic()
-
-    async def start_offboard(self, first_setpoint: SetpointLike, timeout: float | None = None) -> None:
-        """Stream ``first_setpoint``, switch PX4 to OFFBOARD and wait until the vehicle reports it."""
-        from mavsdk.asyncio.plugins.offboard import OffboardError
-
-        self.check_link()
-        timeout = self.cfg.command_timeout if timeout is None else timeout
-        sp = self._validated(first_setpoint)
-        self._latest_sp = sp
-        self._last_fresh = self._switch_beat = time.monotonic()
-        self._offboard_requested = True
-        self._offboard_end_reason = None  # set by the loop guard if it hands over before the switch is seen
-        # From the first setpoint on, MAVSDK resends it by itself: the loop guard watches from here, not from
-        # the confirmation (PX4's 1 Hz heartbeat, up to ~1 s later), so a loop stalled meanwhile is caught too.
-        self._switch_pending = True
-        self._start_loop_guard()
-        beat = asyncio.create_task(self._beat_while_switching(), name="link:switch_beat")
-        try:
-            await self._send(sp)
-            await asyncio.sleep(0.2)  # PX4 wants a setpoint stream before it accepts OFFBOARD
-            self._status_text = None
-            n0 = self._mode_reports
-            await self._mapped_call("start offboard", self._offboard.start, timeout, OffboardError, OffboardDenied,
-                                    "offboard refused")
-            await self._wait_until(lambda: (self._mode_reports > n0 and self._flight_mode == "OFFBOARD")
-                                   or self._offboard_end_reason is not None,
-                                   max(timeout, self.cfg.mode_timeout),
-                                   "offboard accepted but the vehicle is not in OFFBOARD", OffboardDenied)
-            if self._offboard_end_reason is not None:  # the loop guard handed over to HOLD while we waited
-                raise OffboardLost(f"offboard start abandoned: {self._offboard_end_reason}")
-            self._last_fresh = time.monotonic()
-            self._offboard_active = True  # before the switch stops pending: the guard never sees neither
-        except BaseException:
-            self._guard_stop.set()
-            raise
-        finally:
-            self._switch_pending = False
-            beat.cancel()
-        self._offboard_tasks = [asyncio.create_task(self._stream(), name="link:setpoint_stream"),
-                                asyncio.create_task(self._watchdog(), name="link:watchdog")]
-        self._emit("offboard_started")
-
-    async def _mapped_call(self, what: str, fn: Callable[[], Awaitable[Any]], timeout: float,
-                           error: type[Exception], refused: type[LinkError], refused_what: str) -> None:
-        """One mavsdk plugin call whose failure is ``error`` (ActionError, OffboardError): its TIMEOUT result is
-        CommandTimeout, any other result ``refused`` with the autopilot's reason."""
-        try:
-            await self._call(what, fn, timeout)
-        except error as e:
-            result = e.result.name  # type: ignore[attr-defined]
-            if result == "TIMEOUT":
-                raise CommandTimeout(f"{what}: no answer from the autopilot{self._why()}") from None
-            raise refused(f"{refused_what}: {result}{self._why()}") from None
-
-    async def _beat_while_switching(self) -> None:
-        """While the switch is pending no fresh setpoint is due; the guard then watches the loop itself."""
-        while True:
-            self._switch_beat = time.monotonic()
-            await asyncio.sleep(0.05)
-
-    async def set_setpoint(self, sp: SetpointLike) -> None:
-        """Send a fresh setpoint (the control loop calls this every frame)."""
-        checked = self._validated(sp)
-        if not self._offboard_active:
-            why = self._offboard_end_reason or "not started"
-            raise OffboardLost(f"setpoint refused: offboard is not active ({why})")
-        self.check_link()
-        if self._flight_mode != "OFFBOARD":
-            await self._left_offboard(f"vehicle left OFFBOARD, now {self._flight_mode}")
-            raise OffboardLost(f"setpoint refused: {self._offboard_end_reason}")
-        self._latest_sp = checked
-        self._last_fresh = time.monotonic()
-        await self._send(checked)
-
-    async def _stream(self) -> None:
-        period = 1.0 / self.cfg.setpoint_rate
-        while self._offboard_active:
-            if self._latest_sp is not None and time.monotonic() - self._last_sent >= period:
-                with contextlib.suppress(LinkError):
-                    await self._send(self._latest_sp)
-            await asyncio.sleep(period / 2)
-
-    async def _watchdog(self) -> None:
-        from mavsdk.asyncio.plugins.offboard import OffboardError
-
-        while self._offboard_active:
-            if self._flight_mode != "OFFBOARD":
-                await self._left_offboard(f"vehicle left OFFBOARD, now {self._flight_mode}")
-                return
-            age = time.monotonic() - self._last_fresh
-            if age > self._setpoint_timeout:
-                reason = (f"setpoint watchdog: no fresh setpoint for {age:.2f} s "
-                          f"(limit {self._setpoint_timeout:.2f} s), handed over to HOLD")
-                self._offboard_active = False
-                self._offboard_end_reason = reason
-                self._emit("watchdog", age=age)
-                try:
-                    await self._call("stop offboard (watchdog)", self._offboard.stop)
-                except (OffboardError, LinkError) as e:
-                    self._emit("watchdog_stop_failed", error=str(e))
-                return
-            await asyncio.sleep(min(0.05, self._setpoint_timeout / 4))
-
-    def _start_loop_guard(self) -> None:
-        """Second line behind ``_watchdog``, in a thread: it still works when the event loop itself is stuck.
-
-        A stalled loop (sync code that never returns) runs no asyncio task, while MAVSDK's own thread
-        keeps resending the last setpoint. After twice the watchdog limit without a fresh setpoint this
-        thread stops offboard through mavsdk's blocking API (PX4 -> HOLD).
-        """
-        plugin = getattr(self._offboard, "_plugin", None)  # the blocking Offboard behind mavsdk's async wrapper
-        if plugin is None:
-            return
-        loop = asyncio.get_running_loop()
-        self._guard_stop = stop = threading.Event()
-        limit = 2.0 * self._setpoint_timeout + 0.2
-
-        def run() -> None:
-            while not stop.wait(0.05):
-                if self._offboard_active:
-                    age = time.monotonic() - self._last_fresh
-                elif self._switch_pending:  # no fresh setpoint is due yet: the loop's own beat
-                    age = time.monotonic() - max(self._last_fresh, self._switch_beat)
-                else:
-                    return
-                if age <= limit:
-                    continue
-                self._offboard_active = False
-                self._offboard_end_reason = (f"loop guard: no fresh setpoint for {age:.2f} s and the event loop "
-                                             "is stalled, handed over to HOLD")
-                self._guard_busy = True
-                # Reported before the blocking stop: a loop that wakes meanwhile learns the cause first.
-                with contextlib.suppress(RuntimeError):  # loop already closed
-                    loop.call_soon_threadsafe(functools.partial(self._emit, "loop_guard", age=age))
-                try:
-                    result: object = plugin.stop()
-                except Exception as e:  # reported below; the thread must end either way
-                    result = e
-                finally:
-                    self._guard_busy = False
-                with contextlib.suppress(RuntimeError):
-                    loop.call_soon_threadsafe(functools.partial(self._emit, "loop_guard_stop", result=str(result)))
-                return
-
-        threading.Thread(target=run, name="link:loop_guard", daemon=True).start()
-
-    async def _left_offboard(self, reason: str) -> None:
-        """The vehicle left OFFBOARD on its own: stop commanding, never re-enter, defuse MAVSDK's resends."""
-        if not self._offboard_active:
-            return
-        self._offboard_active = False
-        self._offboard_end_reason = reason
-        self._emit("offboard_lost", reason=reason, mode=self._flight_mode)
-        # MAVSDK keeps resending the last setpoint; make it a level hover in case OFFBOARD is ever re-engaged.
-        # (offboard.stop() would also end the resends, but it commands HOLD over the pilot's choice.)
-        yaw = self._latest_sp.yaw_deg if self._latest_sp is not None else 0.0
-        with contextlib.suppress(Exception):
-            await self._send(_Sp(0.0, 0.0, yaw, min(max(self._hover_value, self._thrust_min), 1.0)))
-
-    def _stop_offboard_tasks(self, reason: str) -> None:
-        self._guard_stop.set()
-        if self._offboard_active:
-            self._offboard_active = False
-            self._offboard_end_reason = reason
-        for t in self._offboard_tasks:
-            if t is not asyncio.current_task():
-                t.cancel()
-        self._offboard_tasks = []
-
-    async def stop_offboard(self, timeout: float | None = None) -> None:
-        """Leave OFFBOARD for HOLD (only if the vehicle is still in OFFBOARD: never override the pilot)."""
-        from mavsdk.asyncio.plugins.offboard import OffboardError
-
-        timeout = self.cfg.command_timeout if timeout is None else timeout
-        self._stop_offboard_tasks("stopped by the app")
-        requested, self._offboard_requested = self._offboard_requested, False
-        # PX4 may be in OFFBOARD before its 1 Hz heartbeat says so: stop whenever we asked for it, unless the
-        # vehicle is seen in a mode that is not ours (the pilot's: never override it).
-        if self._flight_mode != "OFFBOARD" and not (requested and self._flight_mode in ("HOLD", "TAKEOFF", None)):
-            return
-        self.check_link()
-        n0 = self._mode_reports
-        await self._mapped_call("stop offboard", self._offboard.stop, timeout, OffboardError, CommandDenied,
-                                "stop offboard refused")
-        self._emit("offboard_stopped")
-        await self.wait_mode("HOLD", max(timeout, self.cfg.mode_timeout), after=n0)
 
     # ------------------------------------------------------------------------------- teardown
     async def close(self, timeout: float | None = None) -> None:

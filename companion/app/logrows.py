@@ -9,11 +9,12 @@ from companion.frames import euler_ned_deg_from_R
 if TYPE_CHECKING:
     from companion.app.camera import Frame
     from companion.flightlog import FlightLog
+    from companion.vehicle import TruthSource
 
 
-def log_telemetry(log: FlightLog, link: Any) -> Any:
-    """One row of the telemetry topic and, where the link has it, of truth (the app and shadow mode alike).
-    Returns the truth sample logged (None without truth) for the app's gate judge."""
+def log_telemetry(log: FlightLog, link: Any, truth: TruthSource | None = None) -> Any:
+    """One row of the telemetry topic and, where ``truth`` has a sample, of truth (the app and shadow mode
+    alike). Returns the truth sample logged (None without truth) for the app's gate judge."""
     att = link.attitude
     q = att.q_wxyz if att is not None else (None,) * 4
     r = p = y = None
@@ -28,11 +29,11 @@ def log_telemetry(log: FlightLog, link: Any) -> Any:
               qw=q[0], qx=q[1], qy=q[2], qz=q[3], roll_deg=r, pitch_deg=p, yaw_deg=y,
               baro_alt_m=None if b is None else b.altitude_raw_m, flight_mode=link.flight_mode, armed=link.armed,
               landed_state=link.landed_state, **extra)
-    truth = link.truth_for_log  # log only: scoring and plots, never an input of the controller
-    if truth is not None:
-        pn, vn = truth.position_ned, truth.velocity_ned
+    sample = None if truth is None else truth.latest()  # log only: scoring and plots, never the controller
+    if sample is not None:
+        pn, vn = sample.position_ned, sample.velocity_ned
         log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
-    return truth
+    return sample
 
 
 def log_detection(log: FlightLog, frame: Frame, box: Any, valid: bool) -> None:

@@ -1,6 +1,6 @@
 """The flight's honest outcome: was each gate flown through? (pure; ground truth scores, never steers)
 
-Where ground truth exists (our simulated PX4, PX4 SITL: the link's ``truth_for_log`` position and the
+Where ground truth exists (our simulated PX4, PX4 SITL: the flight's truth source and the
 synthetic camera's gate log) the ``GateJudge`` scores each gate like the in-process studies do
 (companion/scoring.py, the geometry the simulator and the flight log use too: the first crossing of the
 gate plane from the vehicle's side, distance to the centre there against the gate radius). Its results

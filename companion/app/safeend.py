@@ -12,7 +12,7 @@ import contextlib
 import math
 from typing import TYPE_CHECKING, Any
 
-from companion.app import link as linkmod
+from companion.app import linkerrors as linkmod
 from companion.app.camera import CameraFailed
 from companion.app.states import GROUND_STATES, PILOT_MODES, Reason, State
 from companion.limits import Abort

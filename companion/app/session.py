@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from companion.app.flight import FlightApp
     from companion.app.states import Reason
     from companion.config import Config
+    from companion.vehicle import TruthSource
 
 
 class StartRefused(RuntimeError):
@@ -94,13 +95,15 @@ async def _fly_locked(
     app: FlightApp | None = None
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
                                    else log.event(f"link {kind} {detail}"))
-    truth = None
+    truth: TruthSource | None = None
     try:
-        from companion.px4sitl.truth import attach_truth
+        from companion.app.telemetry import LinkPositionTruth
+        from companion.px4sitl.truth import open_truth
 
-        truth = attach_truth(cfg, link)  # PX4 SIH's ground truth for the camera and the score (px4.truth_url)
+        # PX4 SIH's ground truth for the camera and the score (px4.truth_url), else the link's own position.
+        truth = open_truth(cfg) or LinkPositionTruth(link)
         judge = GateJudge()  # ground truth, where a simulator provides it: scores the gates, never steers
-        camera, perception, in_thread = build_camera(cfg, link, log, judge)
+        camera, perception, in_thread = build_camera(cfg, link, log, judge, truth)
         if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
 
@@ -108,7 +111,7 @@ async def _fly_locked(
                                      link_attitude(link))
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
                         status_line=status_line, perception_in_thread=in_thread, judge=judge,
-                        confirm=confirm)
+                        confirm=confirm, truth=truth)
         loop = asyncio.get_running_loop()
         if handle_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):

@@ -26,7 +26,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from companion.app.logrows import log_detection, log_telemetry
 from companion.app.perframe import frame_input, log_step
@@ -34,6 +34,7 @@ from companion.core import FlightCore
 
 if TYPE_CHECKING:
     from companion.config import Config
+    from companion.vehicle import TruthSource, VehicleTelemetry
 
 SHADOW_STATE = "SHADOW"
 _COMMANDING = frozenset({"arm", "disarm", "takeoff", "land", "hold", "start_offboard", "stop_offboard", "set_setpoint",
@@ -45,9 +46,13 @@ class ShadowViolation(RuntimeError):
 
 
 class ReadOnlyLink:
-    """The vehicle link with every commanding call removed: telemetry, parameters, connect and close only."""
+    """The vehicle link with every commanding call removed: telemetry, parameters, connect and close only.
 
-    def __init__(self, link: Any) -> None:
+    Typed as ``companion.vehicle.VehicleTelemetry`` wherever shadow uses it (the session is declared on that
+    Protocol, which has no commanding member: a type checker refuses ``link.arm()``); the runtime guard here
+    catches what typing cannot (a call through ``Any``)."""
+
+    def __init__(self, link: VehicleTelemetry) -> None:
         self._link = link
 
     def __getattr__(self, name: str) -> Any:
@@ -64,6 +69,7 @@ async def shadow(
     from companion.app.assemble import build_camera
     from companion.app.link import VehicleLink
     from companion.app.states import Reason
+    from companion.app.telemetry import LinkPositionTruth
     from companion.config import config_as_dict
     from companion.flightlog import FlightLog
 
@@ -72,7 +78,7 @@ async def shadow(
           file=stderr, flush=True)
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: log.event(
         f"link {kind} {detail}" if detail else f"link {kind}", "info"))
-    ro = ReadOnlyLink(link)
+    ro = cast("VehicleTelemetry", ReadOnlyLink(link))  # read-only by type (and by the runtime guard)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     if handle_signals:
@@ -80,16 +86,17 @@ async def shadow(
             loop.add_signal_handler(sig, stop.set)
     session = _Session(cfg, ro, log, stderr)
     reason, detail = Reason.OK, "shadow session ended"
-    truth = None
+    truth: TruthSource | None = None
     try:
-        from companion.px4sitl.truth import attach_truth
+        from companion.px4sitl.truth import open_truth
 
-        truth = attach_truth(cfg, link)  # PX4 SIH's true pose for a synthetic camera (px4.truth_url), never control
+        # PX4 SIH's true pose for a synthetic camera (px4.truth_url), else the link's own position; never control.
+        truth = session.truth = open_truth(cfg) or LinkPositionTruth(ro)
         log.state("INIT", "CONNECT", f"connecting to {cfg.link.url} (shadow: read-only)")
         await ro.connect()
         await ro.wait_link_ok(cfg.link.connect_timeout)
         await session.read_hover()
-        camera, perception, in_thread = build_camera(cfg, ro, log)
+        camera, perception, in_thread = build_camera(cfg, ro, log, truth=truth)
         if record is not None:  # --record: the frames the pilot's flight showed, for labelling and replay
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight
 
@@ -131,7 +138,7 @@ async def shadow(
 
 
 class _Session:
-    def __init__(self, cfg: Config, link: ReadOnlyLink, log: Any, stderr: Any,
+    def __init__(self, cfg: Config, link: VehicleTelemetry, log: Any, stderr: Any,
                  clock: Callable[[], float] = time.monotonic,
                  on_setpoint: Callable[[float, Any], None] | None = None) -> None:
         from companion.controller import PNController
@@ -149,6 +156,7 @@ class _Session:
         self.hover_source = "config"
         self._baro0: float | None = None
         self._passes_before = 0  # confirmed passes of the engagements that ended before the current one
+        self.truth: TruthSource | None = None  # logged in the truth topic only
 
     @staticmethod
     def connected_ok(link: Any) -> bool:
@@ -244,7 +252,7 @@ class _Session:
 
     async def _telemetry(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
-            log_telemetry(self.log, self.link)
+            log_telemetry(self.log, self.link, self.truth)
             await asyncio.sleep(0.05)
 
     def summary(self, reason: Any, detail: str) -> dict[str, Any]:

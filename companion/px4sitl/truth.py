@@ -29,7 +29,7 @@ EARTH_RADIUS = 6371000.0  # m, SIH's flat-earth radius
 
 @dataclass(frozen=True)
 class TrueState:
-    """The simulator's true state (duck-types the link's TruthForLog, plus the true attitude)."""
+    """The simulator's true state (a companion.vehicle.TruePose: the link's TruthForLog plus the attitude)."""
 
     position_ned: np.ndarray  # m, from the origin
     velocity_ned: np.ndarray  # m/s
@@ -58,7 +58,8 @@ class SihTruth:
     """A thread that reads HIL_STATE_QUATERNION from SIH's link and keeps the recent true states.
 
     ``latest()`` is the newest state; ``at(t)`` the state at host time ``t`` (attitude interpolated on
-    the sphere, position interpolated, or extrapolated with the velocity past the newest sample).
+    the sphere, position interpolated, or extrapolated with the velocity past the newest sample). A
+    companion.vehicle.TruthSource.
     """
 
     def __init__(self, url: str, origin: Sequence[float] | None = None, history: int = 200) -> None:
@@ -133,10 +134,9 @@ class SihTruth:
             self._conn.close()
 
 
-def attach_truth(cfg: Any, link: Any) -> SihTruth | None:
-    """When px4.truth_url is set, read SIH's ground truth and make it the link's truth (scoring, camera)."""
+def open_truth(cfg: Any) -> SihTruth | None:
+    """SIH's ground truth when px4.truth_url is set (None otherwise), for the caller to pass to the synthetic
+    camera and the flight log explicitly (a companion.vehicle.TruthSource); close() it when done."""
     if not cfg.px4.truth_url:
         return None
-    truth = SihTruth(cfg.px4.truth_url, cfg.px4.truth_origin)
-    link.truth_source = truth
-    return truth
+    return SihTruth(cfg.px4.truth_url, cfg.px4.truth_origin)

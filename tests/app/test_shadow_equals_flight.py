@@ -82,7 +82,6 @@ class RecordedVehicle:
         self.link_ok, self.telemetry_age, self.offboard_active = True, 0.0, False
         self.sent: list[tuple[float, Any]] = []  # (frame time, setpoint) of every setpoint sent
         self.now = 0.0
-        self.truth_for_log = None  # no ground truth in a recording
 
     def advance(self, s: Sample) -> None:
         self.now = s.t

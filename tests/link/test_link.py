@@ -10,13 +10,13 @@ import pytest
 from linkkit import TRUE_HOVER, connected_link, flying_link, run, setpoint
 from scipy.spatial.transform import Rotation
 
-from companion.app.link import (
+from companion.app.link import VehicleLink
+from companion.app.linkerrors import (
     ArmDenied,
     CommandTimeout,
     LinkLost,
     OffboardDenied,
     OffboardLost,
-    VehicleLink,
 )
 from companion.config import Config
 from companion.frames import R_ned_frd_from_enu_flu
@@ -45,7 +45,7 @@ def test_connect_health_params_and_telemetry(sim: SimPX4, cfg: Config) -> None:
             assert link.imu.accel_frd == pytest.approx([0.0, 0.0, -9.81], abs=0.3)
             assert np.linalg.norm(link.imu.gyro_frd) < math.radians(2.0)
             assert link.baro_altitude == pytest.approx(0.0, abs=0.6)
-            assert link.truth_for_log is not None and np.allclose(link.truth_for_log.position_ned, 0.0, atol=1e-3)
+            assert link.position_for_log is not None and np.allclose(link.position_for_log.position_ned, 0.0, atol=1e-3)
             assert link.link_ok
 
     run(body)
@@ -98,7 +98,7 @@ def test_offboard_attitude_setpoints_fly_as_commanded(sim: SimPX4, cfg: Config) 
                     await link.set_setpoint(sp)
                     await asyncio.sleep(1 / 30)
                     if i == 10:  # attitude settled (tau 0.15 s): from here the tilt accelerates it
-                        v_start = link.truth_for_log.velocity_ned[:2].copy()
+                        v_start = link.position_for_log.velocity_ned[:2].copy()
                 # Truth ENU/FLU -> NED/FRD by hand (swap x/y and flip z; flip body y/z), then scipy's ZYX Euler.
                 P, F = np.array([[0, 1, 0], [1, 0, 0], [0, 0, -1.0]]), np.diag([1.0, -1.0, -1.0])
                 R_true = P @ Rotation.from_quat(sim.truth().q).as_matrix() @ F
@@ -108,10 +108,10 @@ def test_offboard_attitude_setpoints_fly_as_commanded(sim: SimPX4, cfg: Config) 
                 # thrust axis = -z_body; its horizontal part is the direction of the horizontal acceleration.
                 thrust_dir = -Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).apply([0, 0, 1.0])
                 a_dir = thrust_dir[:2] / np.linalg.norm(thrust_dir[:2])
-                dv = link.truth_for_log.velocity_ned[:2] - v_start
+                dv = link.position_for_log.velocity_ned[:2] - v_start
                 cos_angle = float(np.dot(dv, a_dir) / np.linalg.norm(dv))
                 assert cos_angle > math.cos(math.radians(20.0))
-                assert link.truth_for_log.position_ned[2] == pytest.approx(-sim.truth().p[2], abs=0.2)
+                assert link.position_for_log.position_ned[2] == pytest.approx(-sim.truth().p[2], abs=0.2)
             await link.stop_offboard()
             assert sim.mode == "HOLD" and link.flight_mode == "HOLD"
             assert not link.offboard_active
@@ -268,7 +268,7 @@ def test_bad_setpoints_and_urls_are_one_line_errors(sim: SimPX4, cfg: Config) ->
             with pytest.raises(ValueError, match="need roll_deg, pitch_deg, yaw_deg, thrust"):
                 await link.set_setpoint(object())
         bad = VehicleLink.from_config(cfg)
-        from companion.app.link import ConnectFailed
+        from companion.app.linkerrors import ConnectFailed
 
         with pytest.raises(ConnectFailed, match=r"no autopilot heard on udpin://127\.0\.0\.1:9 within 0\.5 s"):
             await bad.connect("udpin://127.0.0.1:9", timeout=0.5)
@@ -332,7 +332,7 @@ def test_loop_guard_covers_a_stall_while_the_switch_to_offboard_is_pending(sim: 
 
 @pytest.mark.timeout(30)
 def test_failed_preflight_gives_not_healthy_naming_the_check(sim: SimPX4, cfg: Config) -> None:
-    from companion.app.link import NotHealthy
+    from companion.app.linkerrors import NotHealthy
 
     sim.fail_preflight = True
 
@@ -354,7 +354,7 @@ def test_failed_preflight_gives_not_healthy_naming_the_check(sim: SimPX4, cfg: C
 
 @pytest.mark.timeout(30)
 def test_unusable_url_is_connect_failed(cfg: Config) -> None:
-    from companion.app.link import ConnectFailed
+    from companion.app.linkerrors import ConnectFailed
 
     async def body() -> None:
         link = VehicleLink.from_config(cfg)
@@ -385,7 +385,7 @@ def test_attitude_history_interpolates_like_slerp() -> None:
     """Frames are paired with the attitude at their capture time; checked against scipy's Slerp."""
     from scipy.spatial.transform import Rotation, Slerp
 
-    from companion.app.link import AttitudeHistory
+    from companion.app.telemetry import AttitudeHistory
 
     rots = Rotation.from_euler("ZYX", [[0, 0, 0], [3, -2, 1], [5, -4, 3], [6, -5, 2]], degrees=True)
     ts = [10.0, 10.02, 10.04, 10.06]

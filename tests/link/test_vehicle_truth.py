@@ -20,8 +20,10 @@ from scipy.spatial.transform import Rotation
 
 from companion.app.envelope import SetpointEnvelope, tilt_deg
 from companion.app.failsafe import judge
-from companion.app.link import ConnectFailed, SetpointRejected, VehicleLink, WrongAutopilot, attitude_problem
+from companion.app.link import VehicleLink
+from companion.app.linkerrors import ConnectFailed, SetpointRejected, WrongAutopilot
 from companion.app.px4events import EventDecoder
+from companion.app.telemetry import attitude_problem
 from companion.config import Config, load_config
 from companion.configbase import ConfigError
 from companion.sim.px4 import SimPX4
