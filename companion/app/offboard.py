@@ -22,9 +22,9 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from companion.app.config import LinkConfig
 from companion.app.envelope import SetpointEnvelope
 from companion.app.linkerrors import CommandDenied, LinkError, OffboardDenied, OffboardLost, SetpointRejected
+from companion.config_app import LinkConfig
 from companion.vehicle import SetpointLike
 
 

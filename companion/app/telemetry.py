@@ -22,7 +22,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from companion.app.config import LinkConfig
+from companion.config_app import LinkConfig
 from companion.frames import R_from_quat_wxyz
 
 

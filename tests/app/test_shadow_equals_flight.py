@@ -23,9 +23,9 @@ from scipy.spatial.transform import Rotation
 
 from companion.app.camera import Frame
 from companion.app.flight import FlightApp
-from companion.app.link import AttitudeHistory, AttitudeSample, BaroSample, ImuSample
 from companion.app.shadow import ReadOnlyLink, _Session
 from companion.app.states import State
+from companion.app.telemetry import AttitudeHistory, AttitudeSample, BaroSample, ImuSample
 from companion.config import load_config
 from companion.flightlog import FlightLog
 from companion.frames import R_ned_frd_from_enu_flu, quat_wxyz_from_R
