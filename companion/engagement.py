@@ -111,6 +111,7 @@ class EngagementParams:
     # at 1 px a ring on the border was completed in one frame and not in the next, and its LOS jumped by tens of
     # pixels (roll-setpoint RMS rate 142 -> 99 deg/s on SIH, 156 -> 111 on the x500 with 3 px).
     cut_edge_px: float = 3.0
+    frame_rate: float = 30.0  # Hz, the camera's configured rate (the close detector's window)
 
     @classmethod
     def from_config(cls, cfg: Config, hover_thrust: float | None = None, f_min: float | None = None,
@@ -124,7 +125,8 @@ class EngagementParams:
                    a.recover_thrust_scale, a.pull_up_pitch, a.next_gate, max_gates,
                    cfg.airframe.hover_thrust if hover_thrust is None else hover_thrust, cfg.airframe.thrust_min,
                    cfg.airframe.f_min if f_min is None else f_min, cfg.airframe.f_max if f_max is None else f_max,
-                   cfg.camera.width, cfg.camera.height, math.radians(cfg.airframe.max_tilt))
+                   cfg.camera.width, cfg.camera.height, math.radians(cfg.airframe.max_tilt),
+                   frame_rate=cfg.camera.rate)
 
 
 @dataclass
@@ -196,7 +198,8 @@ class Engagement:
     @classmethod
     def create(cls, params: EngagementParams, controller: Steering, app: AppConfig,
                safety: SafetyConfig, lock: TargetLock | None = None) -> Engagement:
-        return cls(params, controller, CloseDetector(app, params.width), SafetyLimits(safety), lock=lock)
+        close = CloseDetector(app, params.width, frame_rate=params.frame_rate)
+        return cls(params, controller, close, SafetyLimits(safety), lock=lock)
 
     # -- the step ------------------------------------------------------------------------------------
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray, baro_rel_alt: float | None,

@@ -37,14 +37,19 @@ class CloseDetector:
     MAX_STEP = 2.0
     JUMP_WINDOW_S = 0.25
 
-    def __init__(self, app: AppConfig, image_width: int, window_s: float = 0.25, min_samples: int = 7,
+    def __init__(self, app: AppConfig, image_width: int, window_s: float = 0.25, frame_rate: float = 30.0,
                  persist: int = 2) -> None:
         self.trigger = app.close_trigger
         self.ttc_threshold = app.ttc_threshold
         self.size_threshold = app.size_threshold
         self.width = float(image_width)
-        self.window_s = window_s
-        self.min_samples = min_samples
+        # The slope needs a few frames: a slow camera gets a longer window (6 frame periods at least).
+        self.window_s = max(window_s, 6.0 / frame_rate)
+        # Samples the window must hold: 60 % of what the camera rate gives, at least 4. A fixed 7 (a 30 Hz
+        # camera's whole window) made the time-to-contact infinite whenever frames came a little late or a few
+        # were coasted (a loaded machine delivering 25 Hz; any 20 Hz camera): a gate filling 80 % of the image
+        # was never "close", the pass never began, and the vehicle coasted tilted after it into the floor.
+        self.min_samples = max(4, math.ceil(0.6 * self.window_s * frame_rate))
         self.persist = persist  # consecutive frames below the TTC threshold: one noisy slope is not a contact
         self._hist: deque[tuple[float, float]] = deque(maxlen=64)
         self._below = 0
