@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.config import add_config_arguments, config_from_args
+from companion.evaluation.compare import run_compare
 from companion.evaluation.dispatch import AUTOPILOTS, evaluate
 from companion.evaluation.plots import plot_latency, plot_trajectories, sample_runs
 from companion.evaluation.suites import SUITES
@@ -45,8 +46,10 @@ def register(subparsers: Any) -> None:
         "eval", help="run an evaluation suite of the paper on the in-process simulator",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("suite", choices=(*SUITES, "tune"),
-                   help="which study to run (tune: Bayesian optimisation of k_pn and gamma_bar, paper IV-D)")
+    p.add_argument("suite", choices=(*SUITES, "tune", "compare"),
+                   help="which study to run (tune: Bayesian optimisation of k_pn and gamma_bar, paper IV-D; "
+                   "compare A.json B.json: do two results differ beyond their noise, exit 1 if so)")
+    p.add_argument("files", nargs="*", type=Path, metavar="RESULTS_JSON", help="compare: the two results.json")
     p.add_argument("--runs", type=int, default=None, metavar="N",
                    help="total runs (quick mode: e.g. --runs 10); default: the suite's full size")
     p.add_argument("--seed", type=int, default=0, help="suite seed; every run's seed derives from it")
@@ -80,6 +83,11 @@ def register(subparsers: Any) -> None:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    if args.suite == "compare":
+        return run_compare(args.files)
+    if args.files:
+        print(f"companion eval {args.suite}: unexpected arguments {' '.join(map(str, args.files))}", file=sys.stderr)
+        return 2
     if args.runs is not None and args.runs < 1:
         print(f"companion eval: --runs must be >= 1 (got {args.runs})", file=sys.stderr)
         return 2

@@ -11,6 +11,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING
 
 from companion.config import config_as_dict
+from companion.evaluation.stats import RATE_NOTE, add_intervals
 from companion.evaluation.suites import PAPER, Job, build_suite
 from companion.evaluation.tables import setpoint_table
 from companion.sim.runner import run_once
@@ -61,8 +62,8 @@ def run_suite(name: str, cfg: Config, *, runs: int | None = None, seed: int = 0,
     results = run_jobs(suite.jobs, suite.radii, n_jobs, progress, desc=name)
     wall = time.perf_counter() - t0
     groups, md = suite.report(results, suite.radii)
-    total = aggregate(results, suite.radii)
-    md += "\n\n" + setpoint_table(groups, total)
+    total = add_intervals(aggregate(results, suite.radii))
+    md += f"\n\n{RATE_NOTE}\n\n" + setpoint_table(groups, total)
     sim_s = sum(r["sim_time_s"] for r in results)
     return {
         "suite": name,

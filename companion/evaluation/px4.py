@@ -340,6 +340,7 @@ def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, se
     from tqdm import tqdm
 
     from companion.config import config_as_dict
+    from companion.evaluation.stats import RATE_NOTE, add_intervals
     from companion.px4sitl.launcher import find_sitl_dir
     from companion.sim.scoring import aggregate
 
@@ -387,8 +388,8 @@ def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, se
                 p.terminate()
     results = [out[k] for k in sorted(out)]
     groups, md = suite.report(results, radii)
-    total = aggregate(results, radii)
-    md += "\n\n" + setpoint_table(groups, total) + "\n\n" + latency_table(results)
+    total = add_intervals(aggregate(results, radii))
+    md += f"\n\n{RATE_NOTE}\n\n" + setpoint_table(groups, total) + "\n\n" + latency_table(results)
     return {"suite": name, "autopilot": "px4", "seed": seed, "radii": radii, "total": total,
             "groups": groups, "markdown": md, "paper": PAPER[name], "wall_time_s": time.monotonic() - t0,
             "sim_time_s": sum(r.get("wall_s", 0.0) for r in results), "jobs": n_workers, "camera": camera,

@@ -12,6 +12,7 @@ import numpy as np
 
 from companion.config import config_as_dict
 from companion.evaluation.pool import run_jobs
+from companion.evaluation.stats import add_intervals, fmt_rate
 from companion.evaluation.suites import Job
 from companion.sim.runner import RunSpec, with_overrides
 from companion.sim.scoring import setpoint_metrics
@@ -62,7 +63,7 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
         runs = run_jobs(jobs, [1.0], n_jobs, progress=False)
         target = float(np.mean([run_reward(r, reward) for r in runs]))
         opt.register(params=params, target=target)
-        history.append({"iteration": it, **params, "reward": target,
+        history.append({"iteration": it, **params, "reward": target, "runs": len(runs),
                         "success_1m": float(np.mean([r["success"]["1.0"] for r in runs])), **setpoint_metrics(runs)})
     # The best single iteration saw 2 runs per motion: its reward is partly luck. Re-fly the best few on fresh
     # initial conditions and keep the one that holds up (mean over both samples).
@@ -80,7 +81,8 @@ def tune(cfg: Config, *, iterations: int = 25, init_points: int = 5, reward: str
     md = ("| reward | k_pn ours (paper) | gamma_bar deg ours (paper) | mean reward | success 1 m |\n"
           f"|---|---|---|---|---|\n| R_{reward} | {best['k_pn']:.2f} ({PAPER_TUNED[reward]['k_pn']:.2f}) | "
           f"{best['gamma_bar']:.2f} "
-          f"({PAPER_TUNED[reward]['gamma_bar']:.2f}) | {best['reward']:.2f} | {best['success_1m']:.2f} |")
+          f"({PAPER_TUNED[reward]['gamma_bar']:.2f}) | {best['reward']:.2f} | "
+          f"{fmt_rate(add_intervals({'runs': best['runs'], 'success': {'1.0': best['success_1m']}}), '1.0')} |")
     return {"suite": "tune", "reward": reward, "seed": seed, "protocol": protocol, "best": best, "history": history,
             "markdown": md,
             "paper": PAPER_TUNED[reward], "config": config_as_dict(cfg)}
