@@ -78,6 +78,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--px4-dir", default=None, metavar="DIR", help="PX4 SITL build (default px4.sitl_dir, "
                    "$PX4_SITL_DIR)")
     p.add_argument("--motions", default=None, metavar="M1,M2", help="only these gate motions (--autopilot px4)")
+    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="run on a Ray cluster (its head's ADDRESS host:port, or auto for the one this machine "
+                   "joined) instead of the local pool; needs pip install '.[cluster]' (docs/cluster.md)")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_eval)
 
@@ -105,7 +108,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                        progress=not args.no_progress, camera=args.camera, protocol=args.protocol, out_dir=out_dir,
                        px4_dir=args.px4_dir,
                        motions=[m.strip() for m in args.motions.split(",")] if args.motions else None,
-                       config_files=list(args.config), overrides=list(args.overrides))
+                       config_files=list(args.config), overrides=list(args.overrides), cluster=args.cluster)
     except (ValueError, PX4SitlError) as e:  # e.g. the rendered camera's detector model is missing, no PX4 build
         print(f"companion eval: {e}", file=sys.stderr)
         return 2
@@ -140,7 +143,7 @@ def _cmd_tune(args: argparse.Namespace, cfg: Config, out_dir: Path) -> int:
     per = max(1, (args.runs or 2 * len(TUNE_MOTIONS)) // len(TUNE_MOTIONS))
     res = tune(cfg, iterations=args.iterations, init_points=args.init_points, reward=args.reward,
                runs_per_motion=per, seed=args.seed, n_jobs=args.jobs, progress=not args.no_progress,
-               protocol=args.protocol)
+               protocol=args.protocol, cluster=args.cluster)
     json_path = args.json if args.json is not None else out_dir / "results.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(res, indent=1, default=json_default))
