@@ -42,7 +42,9 @@ def ray_head():
     ray_bin = Path(sys.executable).parent / "ray"
     proc = subprocess.Popen(
         [str(ray_bin), "start", "--head", "--block", "--node-ip-address", "127.0.0.1", "--port", str(port),
-         "--num-cpus", "2", "--include-dashboard", "false", "--disable-usage-stats", "--temp-dir", tmp],
+         "--num-cpus", "2", "--include-dashboard", "false", "--disable-usage-stats", "--temp-dir", tmp,
+         # A port Ray would otherwise take fixed (52365): a free one, so two test workers' heads can coexist.
+         "--dashboard-agent-listen-port", str(_free_port())],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=ENV)
     deadline = time.monotonic() + 90
     while time.monotonic() < deadline:
