@@ -63,9 +63,10 @@ def cluster_cpus(ray: Any) -> int:
 
 
 def _run_one(i: int, job: Job, radii: list[float]) -> tuple[int, dict]:
-    from companion.evaluation.pool import _work
+    """What the local pool's worker does with a job (companion.evaluation.pool._work), on a Ray worker."""
+    from companion.sim.runner import run_once
 
-    return _work((i, job, radii))
+    return i, {**job.group, **run_once(job.cfg, job.spec).as_dict(radii)}
 
 
 def gather(ray: Any, refs: Sequence[Any], on_result: Callable[[Any], None]) -> None:

@@ -41,7 +41,15 @@ def evaluate(name: str, cfg: Config, *, autopilot: str = "in-process", runs: int
     if autopilot == "px4":
         if out_dir is None:
             raise ValueError("--autopilot px4 needs an output folder (worker and flight logs)")
-        return run_px4_suite(name, cfg, out_dir, runs=runs, seed=seed, n_jobs=n_jobs, progress=progress,
-                             camera=camera, px4_dir=px4_dir, motions=motions, config_files=list(config_files),
-                             overrides=list(overrides), cluster=cluster)
+        runner = None
+        if cluster is not None:
+            from functools import partial
+
+            from companion.evaluation.px4ray import fly_on_ray
+
+            runner = partial(fly_on_ray, cluster)
+        res = run_px4_suite(name, cfg, out_dir, runs=runs, seed=seed, n_jobs=n_jobs, progress=progress,
+                            camera=camera, px4_dir=px4_dir, motions=motions, config_files=list(config_files),
+                            overrides=list(overrides), runner=runner)
+        return res if cluster is None else {**res, "cluster": cluster}
     raise ValueError(f"eval: unknown autopilot {autopilot!r} (use one of: {', '.join(AUTOPILOTS)})")

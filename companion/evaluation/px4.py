@@ -28,6 +28,7 @@ import signal
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -397,12 +398,13 @@ def _fly_local(jobs: list[Px4Job], n_jobs: int, sitl: str, files: list[str], ove
 
 def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, seed: int, n_jobs: int,
                   progress: bool, camera: str, px4_dir: str | None, motions: list[str] | None,
-                  config_files: list[str], overrides: list[str], cluster: str | None = None) -> dict[str, Any]:
+                  config_files: list[str], overrides: list[str], runner: Callable[..., Any] | None = None
+                  ) -> dict[str, Any]:
     """Run a suite on ``n_jobs`` PX4 instances; the JSON-able result, in run_suite's keys plus PX4's own.
 
     The workers load their config again from ``config_files`` and ``overrides`` (the ones ``cfg`` came from),
-    and write their logs and flights under ``out_dir``. With ``cluster`` the instances are Ray actors on that
-    cluster's nodes (companion.evaluation.px4ray), their flights copied back under ``out_dir``."""
+    and write their logs and flights under ``out_dir``. ``runner`` flies the runs somewhere else than this
+    machine's worker processes, with _fly_local's arguments and result (companion.evaluation.px4ray: on Ray)."""
     from companion.config import config_as_dict
     from companion.evaluation.stats import RATE_NOTE, add_intervals
     from companion.px4sitl.launcher import find_sitl_dir
@@ -416,14 +418,8 @@ def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, se
     radii = suite.radii
     cands = list(range(cfg.px4.instance_min, cfg.px4.instance_max + 1))
     t0 = time.monotonic()
-    if cluster is not None:
-        from companion.evaluation.px4ray import fly_on_ray
-
-        out, n_workers = fly_on_ray(cluster, jobs, n_jobs, str(sitl), list(config_files), list(overrides),
-                                    Path(out_dir), radii, cands, progress, f"{name} on PX4 (Ray)")
-    else:
-        out, n_workers = _fly_local(jobs, n_jobs, str(sitl), list(config_files), list(overrides), Path(out_dir),
-                                    radii, cands, progress, f"{name} on PX4")
+    out, n_workers = (runner or _fly_local)(jobs, n_jobs, str(sitl), list(config_files), list(overrides),
+                                            Path(out_dir), radii, cands, progress, f"{name} on PX4")
     results = [out[k] for k in sorted(out)]
     groups, md = suite.report(results, radii)
     total = add_intervals(aggregate(results, radii))
@@ -431,5 +427,4 @@ def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, se
     return {"suite": name, "autopilot": "px4", "seed": seed, "radii": radii, "total": total,
             "groups": groups, "markdown": md, "paper": PAPER[name], "wall_time_s": time.monotonic() - t0,
             "sim_time_s": sum(r.get("wall_s", 0.0) for r in results), "jobs": n_workers, "camera": camera,
-            "protocol": "app", "sih": cfg.px4.sih.model_dump(), "config": config_as_dict(cfg), "runs": results,
-            **({"cluster": cluster} if cluster is not None else {})}
+            "protocol": "app", "sih": cfg.px4.sih.model_dump(), "config": config_as_dict(cfg), "runs": results}

@@ -57,7 +57,8 @@ class Px4Actor:
 def fly_on_ray(address: str, jobs: list[Px4Job], n_jobs: int, sitl_dir: str, files: list[str],
                overrides: list[str], out_dir: Path, radii: list[float], candidates: list[int], progress: bool,
                desc: str) -> tuple[dict[int, dict], int]:
-    """Every run on Ray actors (``n_jobs`` of them, at most one per run): ({index: result}, actors)."""
+    """Every run on Ray actors (``n_jobs`` of them, at most one per run): ({index: result}, actors).
+    companion.evaluation.px4.run_px4_suite's ``runner`` with the address bound (functools.partial)."""
     from tqdm import tqdm
 
     from companion.evaluation.cluster import connect
@@ -69,7 +70,7 @@ def fly_on_ray(address: str, jobs: list[Px4Job], n_jobs: int, sitl_dir: str, fil
     todo: deque[Px4Job] = deque(jobs)
     running: dict[Any, Any] = {}  # ref -> actor
     out: dict[int, dict] = {}
-    bar = tqdm(total=len(jobs), desc=desc, unit="run", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=len(jobs), desc=f"{desc} (Ray)", unit="run", disable=not progress, file=sys.stderr)
     try:
         for a in actors:
             if todo:
