@@ -1,6 +1,7 @@
 """``companion bench``: the speed figures the issues set goals for, measured on this machine.
 
-Sections (each reported in the JSON under its own key):
+Sections (each reported in the JSON under its own key; the controller step and the simulator frame also as
+ratios to a reference numpy kernel timed beside them, ``ratio_to_kernel``):
   controller_step_us     LOS (ray + rotation) + LOS filter + PN solve + setpoint conversion, per frame
   sim_speed_x_realtime   in-process simulator with the geometric camera, one core
   pipeline_ms_per_frame  detector + tracker at 640x480, one core
@@ -24,6 +25,34 @@ from typing import Any
 import numpy as np
 
 from companion.config import add_config_arguments, config_from_args
+
+
+def _kernel(m: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The reference work unit: a 3x3 matrix-vector product, a cross product, an atan2 and a new 3-vector."""
+    v = m @ a
+    c = np.cross(v, b)
+    return np.array([c[0], c[1], math.atan2(float(c[1]), float(c[0]))])
+
+
+def bench_kernel(calls: int = 500, repetitions: int = 30) -> dict[str, Any]:
+    """Median per-call time (us) of the reference kernel, ``calls`` calls timed together, ``repetitions`` times.
+    The other sections are reported as ratios to it: this machine's speed swings, the ratio much less."""
+    rng = np.random.default_rng(1)
+    m, a, b = rng.normal(size=(3, 3)), rng.normal(size=3), rng.normal(size=3)
+    # CPU time of this process, like the simulator's frame_us: a preemption by another process (6 engineers on 2
+    # cores) is not counted, which wall time would.
+    clock = time.process_time_ns
+    per_call = np.empty(repetitions)
+    for k in range(repetitions):
+        t0 = clock()
+        for _ in range(calls):
+            _kernel(m, a, b)
+        per_call[k] = (clock() - t0) / calls / 1e3
+    return {"median_us": float(np.median(per_call)), "calls": calls, "repetitions": repetitions}
+
+
+# Goals of issue 21, as ratios to the reference kernel timed in the same run.
+RATIO_GOALS = {"controller_step": 1.6, "sim_frame": 7.0}
 
 
 def bench_controller(cfg: Any, steps: int = 20000) -> dict[str, Any]:
@@ -77,10 +106,23 @@ def run(args: argparse.Namespace) -> int:
     def want(key: str) -> bool:
         return not only or key in only
 
+    kernels: list[float] = []
+
+    def kernel() -> float:
+        """The reference kernel, timed again beside each section (the speed drifts within a run)."""
+        k = bench_kernel()["median_us"]
+        kernels.append(k)
+        print(f"reference kernel: median {k:.2f} us per call (500 calls x 30)")
+        return k
+
+    ratios: dict[str, float] = {}
     if want("controller_step_us"):
+        k = kernel()
         r = bench_controller(cfg, steps=2000 if args.quick else 20000)
         results["controller_step_us"] = r
-        print(f"controller step: median {r['median']:.1f} us, p95 {r['p95']:.1f} us (goal: median <= 50 us)")
+        ratios["controller_step"] = r["median"] / k
+        print(f"controller step: median {r['median']:.1f} us, p95 {r['p95']:.1f} us = "
+              f"{ratios['controller_step']:.2f}x the kernel (goal <= {RATIO_GOALS['controller_step']})")
     for key, module, func in _EXTERNAL:
         if not want(key):
             continue
@@ -93,10 +135,18 @@ def run(args: argparse.Namespace) -> int:
         # Every section times the configured system (--config / --set), not the defaults.
         accepts = fn.__code__.co_varnames[:fn.__code__.co_argcount]
         kwargs = {k: v for k, v in (("quick", args.quick), ("cfg", cfg), ("pc", cfg.perception)) if k in accepts}
+        k = kernel() if key == "sim_speed_x_realtime" else None
         r = fn(**kwargs)
+        if k is not None and isinstance(r, dict) and "frame_us" in r:
+            ratios["sim_frame"] = r["frame_us"] / k
+            print(f"simulator frame: {r['frame_us']:.1f} us = {ratios['sim_frame']:.2f}x the kernel "
+                  f"(goal <= {RATIO_GOALS['sim_frame']})")
         # Each owner returns {key: value-or-dict, ...}; keep its whole dict under the section key.
         results[key] = r.get(key, r) if isinstance(r, dict) and len(r) == 1 else r
         print(f"{key}: {json.dumps(results[key])}")
+    if kernels:
+        results["reference_kernel_us"] = {"median": float(np.median(kernels)), "each": kernels}
+        results["ratio_to_kernel"] = {**ratios, "goals": RATIO_GOALS}
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(results, indent=2) + "\n")

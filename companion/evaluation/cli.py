@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.config import add_config_arguments, config_from_args
+from companion.evaluation.compare import run_compare
 from companion.evaluation.dispatch import AUTOPILOTS, evaluate
 from companion.evaluation.plots import plot_latency, plot_trajectories, sample_runs
 from companion.evaluation.suites import SUITES
@@ -45,8 +46,10 @@ def register(subparsers: Any) -> None:
         "eval", help="run an evaluation suite of the paper on the in-process simulator",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("suite", choices=(*SUITES, "tune"),
-                   help="which study to run (tune: Bayesian optimisation of k_pn and gamma_bar, paper IV-D)")
+    p.add_argument("suite", choices=(*SUITES, "tune", "compare"),
+                   help="which study to run (tune: Bayesian optimisation of k_pn and gamma_bar, paper IV-D; "
+                   "compare A.json B.json: do two results differ beyond their noise, exit 1 if so)")
+    p.add_argument("files", nargs="*", type=Path, metavar="RESULTS_JSON", help="compare: the two results.json")
     p.add_argument("--runs", type=int, default=None, metavar="N",
                    help="total runs (quick mode: e.g. --runs 10); default: the suite's full size")
     p.add_argument("--seed", type=int, default=0, help="suite seed; every run's seed derives from it")
@@ -75,11 +78,19 @@ def register(subparsers: Any) -> None:
     p.add_argument("--px4-dir", default=None, metavar="DIR", help="PX4 SITL build (default px4.sitl_dir, "
                    "$PX4_SITL_DIR)")
     p.add_argument("--motions", default=None, metavar="M1,M2", help="only these gate motions (--autopilot px4)")
+    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="run on a Ray cluster (its head's ADDRESS host:port, or auto for the one this machine "
+                   "joined) instead of the local pool; needs pip install '.[cluster]' (docs/cluster.md)")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_eval)
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    if args.suite == "compare":
+        return run_compare(args.files)
+    if args.files:
+        print(f"companion eval {args.suite}: unexpected arguments {' '.join(map(str, args.files))}", file=sys.stderr)
+        return 2
     if args.runs is not None and args.runs < 1:
         print(f"companion eval: --runs must be >= 1 (got {args.runs})", file=sys.stderr)
         return 2
@@ -97,7 +108,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                        progress=not args.no_progress, camera=args.camera, protocol=args.protocol, out_dir=out_dir,
                        px4_dir=args.px4_dir,
                        motions=[m.strip() for m in args.motions.split(",")] if args.motions else None,
-                       config_files=list(args.config), overrides=list(args.overrides))
+                       config_files=list(args.config), overrides=list(args.overrides), cluster=args.cluster)
     except (ValueError, PX4SitlError) as e:  # e.g. the rendered camera's detector model is missing, no PX4 build
         print(f"companion eval: {e}", file=sys.stderr)
         return 2
@@ -132,7 +143,7 @@ def _cmd_tune(args: argparse.Namespace, cfg: Config, out_dir: Path) -> int:
     per = max(1, (args.runs or 2 * len(TUNE_MOTIONS)) // len(TUNE_MOTIONS))
     res = tune(cfg, iterations=args.iterations, init_points=args.init_points, reward=args.reward,
                runs_per_motion=per, seed=args.seed, n_jobs=args.jobs, progress=not args.no_progress,
-               protocol=args.protocol)
+               protocol=args.protocol, cluster=args.cluster)
     json_path = args.json if args.json is not None else out_dir / "results.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(res, indent=1, default=json_default))

@@ -28,6 +28,7 @@ import signal
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -221,6 +222,77 @@ class _Vehicle:
         return time.monotonic() - t0
 
 
+class Px4Flyer:
+    """One PX4 instance and the runs it flies, brought up (again) when needed: a worker process's here, a Ray
+    actor's in companion.evaluation.px4ray. Its flights go to ``out_dir``/flights/runNNN."""
+
+    def __init__(self, sitl_dir: str, files: list[str], overrides: list[str], out_dir: str, radii: list[float],
+                 candidates: list[int], log: Any) -> None:
+        from companion.config import load_config
+
+        self.sitl_dir, self.files, self.overrides, self.out_dir = sitl_dir, files, overrides, out_dir
+        self.radii, self.candidates, self.log = radii, candidates, log
+        self.base = load_config(files, overrides)
+        self.px4: Any = None
+        self.veh: _Vehicle | None = None
+
+    def _bring_up(self) -> None:
+        from companion.px4sitl.launcher import PX4Sitl, px4_params
+
+        base = self.base
+        p = PX4Sitl(Path(self.sitl_dir), candidates=self.candidates, work_parent=base.px4.work_dir or None,
+                    params={**px4_params(base), "MPC_XY_CRUISE": 10.0})
+        self.px4 = p
+        p.start()
+        p.wait_preflight(base.px4.preflight_timeout)
+        self.veh = _Vehicle(p)
+        self.veh.take_off()
+
+    def fly(self, job: Px4Job) -> dict[str, Any] | None:
+        """The run's result; None when the harness (not the flight) failed on a first attempt: fly it again."""
+        from companion.app.session import fly
+        from companion.config import load_config
+        from companion.px4sitl.run import record_px4
+
+        log, t0 = self.log, time.monotonic()
+        try:
+            if self.px4 is None or not self.px4.running:
+                if self.px4 is not None:
+                    self.px4.stop()
+                self._bring_up()
+            px4, veh = self.px4, self.veh
+            assert veh is not None
+            t_repos = veh.reposition()
+            veh.close_truth()
+            run_dir = Path(self.out_dir) / "flights" / f"run{job.index:03d}"
+            ov = [*self.overrides, *px4.config_overrides(), "app.start=pilot", "app.camera=synthetic",
+                  "app.pilot_wait_timeout=20", "app.max_gates=1", "log.plot=false", f"log.directory={run_dir}",
+                  f"safety.altitude_reference={veh.baro_ground}", *job.overrides]
+            cfg = load_config(self.files, ov)
+            print(f"run {job.index}: {job.group} on instance {px4.instance}", file=log)
+            _, folder, _ = asyncio.run(fly(cfg, plot=False, stderr=log, handle_signals=False))
+            record_px4(folder, px4)  # PX4's ULog of this worker's flights, beside ours
+            return {**job.group, **score_flight(folder, self.radii), "reposition_s": t_repos,
+                    "instance": px4.instance, "wall_s": time.monotonic() - t0}
+        except Exception as e:  # (a harness failure is one failed run, with its reason; PX4 restarts)
+            radii = self.radii
+            res = {**job.group, "crossed": False, "t_gate_s": None, "d_center_m": None, "top_speed_mps": 0.0,
+                   "end_reason": "harness_error", "success": {str(float(r)): False for r in radii},
+                   "failure": {str(float(r)): "harness_error" for r in radii},
+                   "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc(limit=4),
+                   "wall_s": time.monotonic() - t0}
+            print(f"run {job.index}: harness error\n{res['traceback']}", file=log)
+            self.close()
+            return None if job.attempt == 0 else res  # not the flight's fault: fly it again on a fresh PX4
+
+    def close(self) -> None:
+        if self.veh is not None:
+            self.veh.close_truth()
+        if self.px4 is not None:
+            self.px4.stop()
+        self.px4 = self.veh = None
+
+
 def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out_dir: str, radii: list[float],
             jobs: Any, results: Any, candidates: list[int], parent_pid: int) -> None:
     """One PX4 instance; runs jobs from the queue until it is empty.
@@ -229,10 +301,7 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
     kernel's parent-death signal), and SIGTERM here unwinds through ``finally``, which stops PX4. Without this a
     killed ``companion eval`` left its workers flying (and restarting) PX4 instances with nobody listening.
     """
-    from companion.app.session import fly
-    from companion.config import load_config
-    from companion.px4sitl.launcher import PX4Sitl, die_with_parent, px4_params
-    from companion.px4sitl.run import record_px4
+    from companion.px4sitl.launcher import die_with_parent
 
     def _terminated(signum: int, frame: Any) -> None:
         raise SystemExit(128 + signum)
@@ -246,65 +315,20 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
     log = open(Path(out_dir) / f"worker{wid}.log", "a", buffering=1)  # noqa: SIM115 (the worker's lifetime)
     os.dup2(log.fileno(), 1)
     os.dup2(log.fileno(), 2)
-    base = load_config(files, overrides)
-    px4: PX4Sitl | None = None
-    veh: _Vehicle | None = None
-
-    def bring_up() -> tuple[PX4Sitl, _Vehicle]:
-        p = PX4Sitl(Path(sitl_dir), candidates=candidates, work_parent=base.px4.work_dir or None,
-                    params={**px4_params(base), "MPC_XY_CRUISE": 10.0})
-        p.start()
-        p.wait_preflight(base.px4.preflight_timeout)
-        v = _Vehicle(p)
-        v.take_off()
-        return p, v
-
+    flyer = Px4Flyer(sitl_dir, files, overrides, out_dir, radii, candidates, log)
     try:
         while True:
             try:
                 job: Px4Job = jobs.get_nowait()
             except queue.Empty:
                 return
-            t0 = time.monotonic()
-            try:
-                if px4 is None or not px4.running:
-                    if px4 is not None:
-                        px4.stop()
-                    px4, veh = bring_up()
-                assert veh is not None
-                t_repos = veh.reposition()
-                veh.close_truth()
-                run_dir = Path(out_dir) / "flights" / f"run{job.index:03d}"
-                ov = [*overrides, *px4.config_overrides(), "app.start=pilot", "app.camera=synthetic",
-                      "app.pilot_wait_timeout=20", "app.max_gates=1", "log.plot=false", f"log.directory={run_dir}",
-                      f"safety.altitude_reference={veh.baro_ground}", *job.overrides]
-                cfg = load_config(files, ov)
-                print(f"run {job.index}: {job.group} on instance {px4.instance}", file=log)
-                _, folder, _ = asyncio.run(fly(cfg, plot=False, stderr=log, handle_signals=False))
-                record_px4(folder, px4)  # PX4's ULog of this worker's flights, beside ours
-                res = {**job.group, **score_flight(folder, radii), "reposition_s": t_repos,
-                       "instance": px4.instance, "wall_s": time.monotonic() - t0}
-            except Exception as e:  # (a harness failure is one failed run, with its reason; PX4 restarts)
-                res = {**job.group, "crossed": False, "t_gate_s": None, "d_center_m": None, "top_speed_mps": 0.0,
-                       "end_reason": "harness_error", "success": {str(float(r)): False for r in radii},
-                       "failure": {str(float(r)): "harness_error" for r in radii},
-                       "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc(limit=4),
-                       "wall_s": time.monotonic() - t0}
-                print(f"run {job.index}: harness error\n{res['traceback']}", file=log)
-                if veh is not None:
-                    veh.close_truth()
-                if px4 is not None:
-                    px4.stop()
-                px4 = None
-                if job.attempt == 0:  # not the flight's fault: fly it again on a fresh PX4
-                    jobs.put(replace(job, attempt=1))
-                    continue
+            res = flyer.fly(job)
+            if res is None:
+                jobs.put(replace(job, attempt=1))
+                continue
             results.put((job.index, res))
     finally:
-        if veh is not None:
-            veh.close_truth()
-        if px4 is not None:
-            px4.stop()
+        flyer.close()
         results.put((-1, {"worker": wid, "done": True}))
 
 
@@ -330,39 +354,23 @@ def px4_jobs(suite_name: str, cfg: Config, runs: int | None, seed: int, motions:
     return jobs, suite
 
 
-def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, seed: int, n_jobs: int,
-                  progress: bool, camera: str, px4_dir: str | None, motions: list[str] | None,
-                  config_files: list[str], overrides: list[str]) -> dict[str, Any]:
-    """Run a suite on ``n_jobs`` PX4 instances; the JSON-able result, in run_suite's keys plus PX4's own.
-
-    The workers load their config again from ``config_files`` and ``overrides`` (the ones ``cfg`` came from),
-    and write their logs and flights under ``out_dir``."""
+def _fly_local(jobs: list[Px4Job], n_jobs: int, sitl: str, files: list[str], overrides: list[str], out_dir: Path,
+               radii: list[float], cands: list[int], progress: bool, desc: str) -> tuple[dict[int, dict], int]:
+    """The runs on ``n_jobs`` worker processes of this machine, one PX4 each: ({index: result}, workers)."""
     from tqdm import tqdm
 
-    from companion.config import config_as_dict
-    from companion.px4sitl.launcher import find_sitl_dir
-    from companion.sim.scoring import aggregate
-
-    if name not in SUPPORTED:
-        raise ValueError(f"--autopilot px4 runs {', '.join(SUPPORTED)} (the other suites need ground truth or "
-                         f"a controller the app does not fly: run them in-process)")
-    sitl = find_sitl_dir(px4_dir, cfg.px4.sitl_dir)
-    jobs, suite = px4_jobs(name, cfg, runs, seed, motions, camera)
-    radii = suite.radii
     ctx = mp.get_context("spawn")
     jq, rq = ctx.Queue(), ctx.Queue()
     for j in jobs:
         jq.put(j)
     n_workers = max(1, min(n_jobs, len(jobs)))
-    cands = list(range(cfg.px4.instance_min, cfg.px4.instance_max + 1))
-    procs = [ctx.Process(target=_worker, args=(w, str(sitl), list(config_files), list(overrides), str(out_dir),
-                                               radii, jq, rq, cands, os.getpid()), daemon=False)
+    procs = [ctx.Process(target=_worker, args=(w, sitl, files, overrides, str(out_dir), radii, jq, rq, cands,
+                                               os.getpid()), daemon=False)
              for w in range(n_workers)]
-    t0 = time.monotonic()
     for p in procs:
         p.start()
     out: dict[int, dict] = {}
-    bar = tqdm(total=len(jobs), desc=f"{name} on PX4", unit="run", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=len(jobs), desc=desc, unit="run", disable=not progress, file=sys.stderr)
     done = 0
     try:
         while done < n_workers:
@@ -385,10 +393,37 @@ def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, se
             p.join(timeout=120)
             if p.is_alive():
                 p.terminate()
+    return out, n_workers
+
+
+def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, seed: int, n_jobs: int,
+                  progress: bool, camera: str, px4_dir: str | None, motions: list[str] | None,
+                  config_files: list[str], overrides: list[str], runner: Callable[..., Any] | None = None
+                  ) -> dict[str, Any]:
+    """Run a suite on ``n_jobs`` PX4 instances; the JSON-able result, in run_suite's keys plus PX4's own.
+
+    The workers load their config again from ``config_files`` and ``overrides`` (the ones ``cfg`` came from),
+    and write their logs and flights under ``out_dir``. ``runner`` flies the runs somewhere else than this
+    machine's worker processes, with _fly_local's arguments and result (companion.evaluation.px4ray: on Ray)."""
+    from companion.config import config_as_dict
+    from companion.evaluation.stats import RATE_NOTE, add_intervals
+    from companion.px4sitl.launcher import find_sitl_dir
+    from companion.sim.scoring import aggregate
+
+    if name not in SUPPORTED:
+        raise ValueError(f"--autopilot px4 runs {', '.join(SUPPORTED)} (the other suites need ground truth or "
+                         f"a controller the app does not fly: run them in-process)")
+    sitl = find_sitl_dir(px4_dir, cfg.px4.sitl_dir)
+    jobs, suite = px4_jobs(name, cfg, runs, seed, motions, camera)
+    radii = suite.radii
+    cands = list(range(cfg.px4.instance_min, cfg.px4.instance_max + 1))
+    t0 = time.monotonic()
+    out, n_workers = (runner or _fly_local)(jobs, n_jobs, str(sitl), list(config_files), list(overrides),
+                                            Path(out_dir), radii, cands, progress, f"{name} on PX4")
     results = [out[k] for k in sorted(out)]
     groups, md = suite.report(results, radii)
-    total = aggregate(results, radii)
-    md += "\n\n" + setpoint_table(groups, total) + "\n\n" + latency_table(results)
+    total = add_intervals(aggregate(results, radii))
+    md += f"\n\n{RATE_NOTE}\n\n" + setpoint_table(groups, total) + "\n\n" + latency_table(results)
     return {"suite": name, "autopilot": "px4", "seed": seed, "radii": radii, "total": total,
             "groups": groups, "markdown": md, "paper": PAPER[name], "wall_time_s": time.monotonic() - t0,
             "sim_time_s": sum(r.get("wall_s", 0.0) for r in results), "jobs": n_workers, "camera": camera,

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from companion.evaluation.stats import add_intervals, fmt_rate
 from companion.evaluation.tables import fmt, reasons
 from companion.sim.runner import RunSpec, with_overrides
 from companion.sim.scoring import aggregate, rkey
@@ -82,7 +83,7 @@ def _groups(results: list[dict], key: Callable[[dict], str], radii: list[float])
     for r in results:
         if key(r) not in names:
             names.append(key(r))
-    return {n: aggregate([r for r in results if key(r) == n], radii) for n in names}
+    return {n: add_intervals(aggregate([r for r in results if key(r) == n], radii)) for n in names}
 
 
 def suite_table1(cfg: Config, runs: int | None = None) -> Suite:
@@ -96,14 +97,14 @@ def suite_table1(cfg: Config, runs: int | None = None) -> Suite:
         lines = ["| Gate motion | Success 1 m (paper) | Success 2 m (paper) | t_gate s (paper) | "
                  "d_center m | top speed m/s | failures (1 m) |", "|---|---|---|---|---|---|---|"]
         rows = [*TABLE1_MOTIONS, "total"]
-        total = aggregate(results, radii)
+        total = add_intervals(aggregate(results, radii))
         for m in rows:
             g = total if m == "total" else groups.get(m)
             if g is None:
                 continue
             lines.append(
-                f"| {m} | {fmt(g['success']['1.0'])} ({p['success_1m'][m]:.2f}) | "
-                f"{fmt(g['success']['2.0'])} ({p['success_2m'][m]:.2f}) | {fmt(g['t_gate_mean_s'])} "
+                f"| {m} | {fmt_rate(g, '1.0')} ({p['success_1m'][m]:.2f}) | "
+                f"{fmt_rate(g, '2.0')} ({p['success_2m'][m]:.2f}) | {fmt(g['t_gate_mean_s'])} "
                 f"({p['t_gate_s'][m]:.2f}) | {fmt(g['d_center_mean_m'])} | {fmt(g['top_speed_mps'], 1)} | "
                 f"{reasons(g, '1.0')} |")
         lines.append(f"\nTop speed: ours {total['top_speed_mps']:.1f} m/s (paper {p['top_speed_mps']} m/s).")
@@ -129,13 +130,13 @@ def suite_latency(cfg: Config, runs: int | None = None) -> Suite:
             g = groups.get(f"{d:.1f}")
             if g is None:
                 continue
-            cells = [f"{fmt(g['success'][rkey(r)])} ({PAPER['latency'][rkey(r)][f'{d:.1f}']:.2f})" for r in radii]
+            cells = [f"{fmt_rate(g, rkey(r))} ({PAPER['latency'][rkey(r)][f'{d:.1f}']:.2f})" for r in radii]
             lines.append(f"| {d * 1000:.0f} | " + " | ".join(cells) + f" | {fmt(g['t_gate_mean_s'])} |")
         by_motion = _groups(results, lambda r: f"{r['motion']} @ {r['delay_s'] * 1000:.0f} ms", radii)
         lines += ["", "| Motion @ delay | " + " | ".join(f"Success {r:g} m" for r in radii) + " |",
                   "|---" * (len(radii) + 1) + "|"]
         for name, g in by_motion.items():
-            lines.append(f"| {name} | " + " | ".join(fmt(g["success"][rkey(r)]) for r in radii) + " |")
+            lines.append(f"| {name} | " + " | ".join(fmt_rate(g, rkey(r)) for r in radii) + " |")
         groups.update({f"by_motion/{k}": v for k, v in by_motion.items()})
         return groups, "\n".join(lines)
 
@@ -170,7 +171,7 @@ def suite_vrel(cfg: Config, runs: int | None = None) -> Suite:
                 lines.append(
                     f"| {dist} | {fmt(g['top_speed_mean_mps'], 1)} ({PAPER['vrel']['top_speed_mps'][dist]:.0f}) | "
                     f"{label} | {fmt(g['d_center_mean_m'])} ± {fmt(g['d_center_std_m'])} ({pm:.2f} ± {ps:.2f}) | "
-                    f"{fmt(g['success']['1.0'])} |")
+                    f"{fmt_rate(g, '1.0')} |")
         return groups, "\n".join(lines)
 
     return Suite("vrel", jobs, [0.5, 1.0, 2.0], report, ["trajectories"])
@@ -200,7 +201,7 @@ def suite_baseline(cfg: Config, runs: int | None = None, seed: int = 0) -> Suite
                 continue
             pb = PAPER["baseline"][label]
             lines.append(
-                f"| {label} | {fmt(b['success']['0.5'])} ({pb['baseline']:.2f}) | {fmt(o['success']['0.5'])} "
+                f"| {label} | {fmt_rate(b, '0.5')} ({pb['baseline']:.2f}) | {fmt_rate(o, '0.5')} "
                 f"({pb['pn']:.2f}) | {fmt(b['t_gate_mean_s'])} / {fmt(o['t_gate_mean_s'])} | "
                 f"{reasons(b, '0.5')} / {reasons(o, '0.5')} |")
         return groups, "\n".join(lines)
