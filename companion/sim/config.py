@@ -72,8 +72,19 @@ class SensorsConfig(Section):
     baro_bias: Meters = Field(0.5, ge=0.0, le=100.0, description="std of the per-run offset")
 
 
+class MountErrorConfig(Section):
+    """How the camera truly sits on the body, relative to what ``camera.mount`` says (deg, added to its angles)."""
+
+    roll: Deg = Field(0.0, ge=-45.0, le=45.0, description="true camera.mount.roll minus the configured one, deg")
+    pitch: Deg = Field(0.0, ge=-45.0, le=45.0, description="true camera.mount.pitch minus the configured one, deg "
+                       "(+: the camera looks higher than configured; a gate ahead renders lower)")
+    yaw: Deg = Field(0.0, ge=-45.0, le=45.0, description="true camera.mount.yaw minus the configured one, deg")
+
+
 class SimCameraConfig(Section):
     """The geometric camera: true pose + gate -> pixel box (intrinsics from the ``camera`` section)."""
+
+    mount_error: MountErrorConfig = MountErrorConfig()
 
     pixel_noise: Pixels = Field(1.0, ge=0.0, le=100.0, description="std of box centre/size noise, px")
     noise_model: Literal["white", "detector"] = Field(
