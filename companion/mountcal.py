@@ -235,8 +235,12 @@ def cmd_mount(args: Any, board: Any, find_board: Callable[[np.ndarray], Any]) ->
         print(f"{name}: {args.source}: not a recording (no index.csv); record with --record DIR", file=sys.stderr)
         return 2
     out = Path(args.output)
+    if not out.is_file():
+        print(f"{name}: -o {out}: no such camera YAML; the mount needs the camera's intrinsics (run companion "
+              f"calibrate on board views with -o {out} first, or give the YAML your flights use)", file=sys.stderr)
+        return 2
     try:
-        camera = load_config([out]).camera if out.exists() else load_config().camera
+        camera = load_config([out]).camera
     except (ConfigError, OSError, ValueError) as e:
         print(f"{name}: {out}: {e}", file=sys.stderr)
         return 2

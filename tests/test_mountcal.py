@@ -75,9 +75,14 @@ def test_a_recording_without_enough_views_is_refused(tmp_path):
     cfg, R_true = _true((0, 0, 0), (0, 5, 0))
     rec = _record(tmp_path, cfg, R_true, n=5)
     out = tmp_path / "camera.yaml"
-    res = subprocess.run([sys.executable, "-m", "companion.cli", "calibrate", str(rec), "--mount", "--cols", "10",
-                          "--rows", "7", "-o", str(out)], capture_output=True, text=True, timeout=100)
-    assert res.returncode == 2 and "refused: too few views" in res.stderr and not out.exists()
+    args = [sys.executable, "-m", "companion.cli", "calibrate", str(rec), "--mount", "--cols", "10", "--rows", "7",
+            "-o", str(out)]
+    res = subprocess.run(args, capture_output=True, text=True, timeout=100)
+    assert res.returncode == 2 and "no such camera YAML" in res.stderr  # no intrinsics: nothing to calibrate with
+    out.write_text("camera:\n  width: 640  # mine\n", encoding="utf-8")
+    res = subprocess.run(args, capture_output=True, text=True, timeout=100)
+    assert res.returncode == 2 and "refused: too few views" in res.stderr
+    assert out.read_text(encoding="utf-8") == "camera:\n  width: 640  # mine\n"  # left as it was
     assert len(res.stderr.strip().splitlines()) == 1
 
 
