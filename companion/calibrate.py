@@ -214,6 +214,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--min-coverage", type=float, default=0.5, help="share of the image the corners must reach")
     p.add_argument("--max-error", type=float, default=1.0, help="largest accepted RMS reprojection error, px")
     p.add_argument("-o", "--output", default="camera_calibrated.yaml", help="camera YAML to write")
+    p.add_argument("--mount", action="store_true", help="source is a --record recording of a still board while the "
+                   "vehicle is turned by hand: find camera.mount (camera -> body) and write it into the -o camera "
+                   "YAML, whose intrinsics it uses (companion/mountcal.py)")
+    p.add_argument("--max-mount-residual", type=float, default=1.0, help="--mount: largest accepted residual, deg")
     p.set_defaults(func=_cmd_calibrate)
 
 
@@ -225,6 +229,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"companion calibrate: --dictionary {args.dictionary}: not a cv2.aruco dictionary", file=sys.stderr)
         return 2
     board = Board(args.board, args.cols, args.rows, args.square, args.marker, args.dictionary)
+    if args.mount:
+        from companion.mountcal import cmd_mount
+
+        return cmd_mount(args, board, Detector(board).find)
     try:
         views = collect(frames_from(args.source, args.max_frames, args.every), board)
         r = calibrate(views, args.min_views, args.min_coverage, args.max_error)

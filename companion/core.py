@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.engagement import Decision, Engagement, EngagementParams, LinkEvent, Phase, Steering
-from companion.hover import HoverEstimate, HoverThrustEstimator, use_hover_thrust
+from companion.frames import R_from_quat_wxyz
+from companion.hover import HoverEstimate, HoverThrustEstimator, thrust_specific_force, use_hover_thrust
 from perception.types import BoundingBox
 
 if TYPE_CHECKING:
@@ -104,20 +105,24 @@ class FlightCore:
                                  accel_frd=inp.accel_frd, t_now=inp.t_now)
         hover = hover_input = None
         if d.setpoint is not None and d.phase.commanding:
-            if inp.imu is not None and self._hover_u is not None:
-                hover_input = (self._hover_u, -float(inp.imu.accel_frd[2]))
-            hover = self._hover_update(inp.imu, d.setpoint.thrust)
+            a_up = None
+            if inp.imu is not None and self.hover_estimator is not None:
+                # The frame's attitude (capture time) with the newest IMU sample: the tilt moves little between.
+                a_up = thrust_specific_force(inp.imu.accel_frd, R_from_quat_wxyz(inp.q_wxyz_ned_frd), self.cfg.hover)
+                if self._hover_u is not None:
+                    hover_input = (self._hover_u, a_up)
+            hover = self._hover_update(inp.imu, d.setpoint.thrust, a_up)
         return CoreStep(d, reset_tracker=d.changed and d.phase is Phase.RECOVER,
                         passes_confirmed=self.engagement.passes_confirmed, hover=hover,
                         hover_input=hover_input if hover is not None else None)
 
-    def _hover_update(self, imu: ImuReading | None, thrust: float) -> HoverEstimate | None:
+    def _hover_update(self, imu: ImuReading | None, thrust: float, a_up: float | None) -> HoverEstimate | None:
         """hover.estimate: the IMU's specific force against the thrust commanded since the last setpoint; the
         controller, the pass and the recovery fly with the estimate from then on."""
         h, est = self.hover_estimator, None
         if h is not None:
-            if imu is not None and self._hover_u is not None:
-                est = h.update(imu.t, self._hover_u, -float(imu.accel_frd[2]))  # FRD: the thrust axis is -z
+            if imu is not None and self._hover_u is not None and a_up is not None:
+                est = h.update(imu.t, self._hover_u, a_up)  # the thrust's specific force (FRD -z, drag removed)
                 if est is not None:
                     use_hover_thrust(self.controller, est.hover_thrust, self.cfg.airframe.thrust_to_weight,
                                      self.engagement)

@@ -10,8 +10,14 @@ slow changes such as battery sag are followed) gives theta and so the hover thru
 at which we command the thrust ourselves.
 
 Pure: numbers in, numbers out; the app, the in-process runner and the tests feed it.
-Drag along the thrust axis is not modelled (the controller has no velocity): at 15 m/s on the x500
-it makes the estimate ~2-3 % high, i.e. slightly more thrust than needed.
+
+Drag along the thrust axis: in fast forward flight the airframe is tilted into the airspeed, so part of the
+drag acts along the thrust axis and the accelerometer's -z reads less than thrust / mass (the estimate read
+high: more thrust than needed). The controller has no velocity, but the accelerometer's body x and y see the
+drag alone (the thrust has none there), and in the engagement's near-level flight the airspeed, and so the
+drag, is horizontal. So (``hover.drag_correction``) the thrust's specific force is taken as the vertical
+specific force over the cosine of the tilt, ``-f_ned_z / R_zz``, which removes exactly a horizontal drag
+(``thrust_specific_force``). A climb or sink at w m/s leaves the drag of w in it (small beside cruise speed).
 """
 
 from __future__ import annotations
@@ -20,9 +26,10 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
 from pydantic import Field
 
-from companion.configbase import MetersPerSecond2, Number, Seconds, Section
+from companion.configbase import Deg, MetersPerSecond2, Number, Seconds, Section
 
 G = 9.81
 
@@ -30,7 +37,7 @@ G = 9.81
 class HoverConfig(Section):
     """In-flight hover-thrust estimate (companion/hover.py)."""
 
-    estimate: bool = Field(False, description="estimate the hover thrust from the IMU while we command the "
+    estimate: bool = Field(True, description="estimate the hover thrust from the IMU while we command the "
                                               "thrust, and use it (False: configured / MPC_THR_HOVER value)")
     tau_thrust: Seconds = Field(0.03, ge=0.0, le=1.0, description="first-order lag command -> thrust, s")
     prior_std: Number = Field(0.3, gt=0.0, le=2.0, description="relative std of the starting value")
@@ -40,6 +47,11 @@ class HoverConfig(Section):
     min_samples: int = Field(5, ge=1, le=1000, description="samples before the estimate is used")
     max_change: Number = Field(0.5, gt=0.0, le=1.0, description="estimate kept within +- this fraction of the "
                                                                 "starting hover thrust")
+    drag_correction: bool = Field(True, description="remove the drag along the thrust axis: thrust specific force "
+                                  "= vertical specific force / cos(tilt) (exact for horizontal airspeed); False: the "
+                                  "accelerometer's -z (drag biases the estimate high at speed)")
+    max_tilt: Deg = Field(60.0, gt=0.0, le=80.0, description="drag_correction: samples tilted more than this are "
+                          "not used (1 / cos(tilt) amplifies the attitude's error)")
 
 
 @dataclass
@@ -104,6 +116,47 @@ class HoverThrustEstimator:
             self.P *= 1.0 - k * x
             self.samples += 1
         return self.estimate() if self.ready else None
+
+
+def thrust_specific_force(accel_frd: Any, R_ned_frd: Any | None, cfg: HoverConfig | None = None) -> float:
+    """The thrust's specific force (m/s^2, along -body z) from an accelerometer sample (FRD, m/s^2).
+
+    ``drag_correction`` (and an attitude): the vertical specific force over the cosine of the tilt, which
+    removes a horizontal drag exactly; NaN (no sample) beyond ``max_tilt``. Else the accelerometer's -z.
+    """
+    c = cfg or HoverConfig()
+    f = np.asarray(accel_frd, float)
+    if not c.drag_correction or R_ned_frd is None:
+        return -float(f[2])
+    r = np.asarray(R_ned_frd, float)[2]
+    cos_tilt = float(r[2])
+    if not cos_tilt >= math.cos(math.radians(c.max_tilt)):
+        return math.nan
+    return -float(r @ f) / cos_tilt
+
+
+HOVER_MISMATCH = 0.10  # relative difference between two hover thrusts that is worth a warning line
+
+
+def hover_mismatch(configured: float, autopilot: float | None, in_use: float, estimate_on: bool,
+                   limit: float = HOVER_MISMATCH) -> str | None:
+    """One line when the configured airframe's hover thrust and the autopilot's differ by more than ``limit``
+    (relative), saying which one flies; None when they agree or the autopilot's is unknown.
+
+    A hover thrust 25 % off flies every crossing high or low (in process: the 0.5 m gate 0.93 -> 0.53 without
+    the in-flight estimate); the estimate corrects it once we command the thrust, from the value in use.
+    """
+    if autopilot is None or not math.isfinite(autopilot) or autopilot <= 0.0:
+        return None
+    rel = autopilot / configured - 1.0
+    if abs(rel) <= limit:
+        return None
+    what = "lighter" if rel < 0 else "heavier"
+    then = ("the in-flight estimate (hover.estimate) starts from it" if estimate_on
+            else "hover.estimate is OFF: nothing corrects it in flight")
+    return (f"hover thrust mismatch: config airframe.hover_thrust {configured:.3f}, PX4 MPC_THR_HOVER "
+            f"{autopilot:.3f} ({rel:+.0%}: the vehicle flies {what} than configured, or PX4's value is stale); "
+            f"using {in_use:.3f}; {then}")
 
 
 def use_hover_thrust(ctrl: Any, hover_thrust: float, thrust_to_weight: float, engagement: Any = None) -> None:

@@ -42,8 +42,7 @@ async def gather(app: Any) -> dict[str, Any]:
         "mode": link.flight_mode, "armed": link.armed, "landed_state": link.landed_state,
         "armable": _armable(link),
         "failsafe": await _failsafe(app),
-        "hover_thrust": {"value": app.ctrl.p.hover_thrust, "source": _hover_source(app),
-                         "in_flight_estimate": bool(cfg.hover.estimate)},
+        "hover_thrust": _hover(app),
         "camera": await _camera(app),
         "pn": {"k_pn": cfg.guidance.k_pn, "gamma_bar_deg": cfg.guidance.gamma_bar,
                "v_rel_bar_mps": cfg.guidance.v_rel_bar, "fov": cfg.guidance.fov,
@@ -76,6 +75,18 @@ def summary_lines(cfg: Any) -> list[str]:
         "safety: " + ", ".join(f"{k} {v}" for k, v in s.model_dump(mode="json").items()),
         f"link: {cfg.link.url}",
     ]
+
+
+def _hover(app: Any) -> dict[str, Any]:
+    """The hover thrust in use, the configured and the autopilot's, and a mismatch line when they differ."""
+    from companion.hover import hover_mismatch
+
+    cfg, value = app.cfg, app.ctrl.p.hover_thrust
+    # The app flies PX4's MPC_THR_HOVER when it read a plausible one (flight.py), so that is the value in use.
+    px4 = value if getattr(app.link, "hover_thrust_source", "config") == "autopilot" else None
+    return {"value": value, "source": _hover_source(app), "in_flight_estimate": bool(cfg.hover.estimate),
+            "configured": cfg.airframe.hover_thrust, "autopilot": px4,
+            "mismatch": hover_mismatch(cfg.airframe.hover_thrust, px4, value, bool(cfg.hover.estimate))}
 
 
 def _hover_source(app: Any) -> str:
@@ -202,7 +213,12 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(f"  WARNING     {p}")
     lines += [
         f"hover thrust  {hv['value']:.3f} from {hv['source']}; in-flight estimate "
-        f"{'ON (hover.estimate)' if hv['in_flight_estimate'] else 'off'}",
+        f"{'ON (hover.estimate)' if hv['in_flight_estimate'] else 'off'}; config {hv['configured']:.3f}, PX4 "
+        f"{v(hv.get('autopilot'), '.3f')}",
+    ]
+    if hv.get("mismatch"):
+        lines.append(f"  WARNING     {hv['mismatch']}")
+    lines += [
         f"camera        {cam['source']}: measured {v(cam.get('rate_hz'))} Hz (configured "
         f"{v(cam.get('configured_rate_hz'))} Hz)" + (f"; {cam['note']}" if cam.get("note") else "")
         + (f"; ERROR {cam['error']}" if cam.get("error") else ""),

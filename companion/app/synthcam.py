@@ -24,7 +24,7 @@ import numpy as np
 
 from companion.app.camera import Frame, GeometricPerception, Perception, PipelinePerception
 from companion.frames import F_FRD_FLU, R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
-from companion.sim.camera import GeometricCamera
+from companion.sim.camera import GeometricCamera, true_camera_config
 from companion.sim.gates import GateMotion, make_gate
 from perception.los import CameraModel
 from perception.types import BoundingBox
@@ -141,7 +141,8 @@ class SyntheticCamera:
         self.clock = clock
         self.on_gate = on_gate
         self.period = 1.0 / cfg.camera.rate
-        self.model = CameraModel.from_config(cfg.camera)
+        # The camera as it truly sits on the body (sim.camera.mount_error); the app perceives with cfg.camera.
+        self.model = CameraModel.from_config(true_camera_config(cfg))
         self.rng = np.random.default_rng(cfg.sim.seed)
         simcam = cfg.sim.camera
         self.geo = GeometricCamera(self.model, simcam.pixel_noise, simcam.drop_prob, simcam.min_box,
@@ -232,7 +233,7 @@ class SyntheticCamera:
                 best: tuple[float, GateMotion, np.ndarray] | None) -> tuple[np.ndarray, BoundingBox | None]:
         from perception.render import Gate, PinholeCamera, render_gate_frame
 
-        cam = PinholeCamera.from_config(self.cfg.camera)
+        cam = PinholeCamera.from_config(true_camera_config(self.cfg))
         R_enu_cam = R_enu_flu @ F_FRD_FLU @ self.model.R_body_cam
         # The background is fixed in the world, as the in-process rendered camera's: its clutter moves in the image
         # as the vehicle turns. An image-fixed background (before) turned a false detection into a box that stayed

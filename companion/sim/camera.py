@@ -230,6 +230,23 @@ class GeometricCamera:
         return BoundingBox(cx, cy, w, h, 1.0, t)
 
 
+def true_camera_config(cfg: Any) -> Any:
+    """The ``camera`` section the simulated camera really has: ``camera.mount`` plus ``sim.camera.mount_error``.
+
+    The app (controller, tracker, calibration) keeps the configured ``cfg.camera``; only the cameras that render
+    what the vehicle sees (in-process geometric and rendered, the synthetic camera for PX4) use this one.
+    """
+    err, m = cfg.sim.camera.mount_error, cfg.camera.mount
+    if err.roll == 0.0 and err.pitch == 0.0 and err.yaw == 0.0:
+        return cfg.camera
+    try:  # validated: a true pitch beyond +-90 deg is a config error, named
+        true_mount = type(m).model_validate({"roll": m.roll + err.roll, "pitch": m.pitch + err.pitch,
+                                             "yaw": m.yaw + err.yaw})
+    except ValueError as e:
+        raise ValueError(f"sim.camera.mount_error: camera.mount + error is not a mount: {e}") from None
+    return cfg.camera.model_copy(update={"mount": true_mount})
+
+
 def detector_noise(cfg: Any, rng: np.random.Generator) -> DetectorNoise:
     """The detector error model of ``cfg.sim.camera.detector_profile`` for the configured image size."""
     return DetectorNoise(PROFILES[cfg.sim.camera.detector_profile], rng, int(cfg.camera.width), int(cfg.camera.height))

@@ -30,8 +30,15 @@ class SimQuadConfig(Section):
     """The simulated vehicle (paper eq:meth_quadrotor_dynamics); x500-like defaults.
 
     ``mass``/``hover_thrust``/``thrust_to_weight`` left empty take the ``airframe`` section's values;
-    set them to model a vehicle that differs from what the controller believes.
+    set them to model a vehicle that differs from what the controller believes. ``mass_scale`` is the one
+    setting for "a heavier (or lighter) vehicle with the same motors": it scales the airframe's mass and hover
+    thrust by s and divides its thrust-to-weight by s (the explicit keys, when set, win).
     """
+
+    mass_scale: Number = Field(
+        1.0, gt=0.2, le=5.0, description="true weight / the airframe's, same motors: true mass = airframe.mass x s, "
+        "hover thrust = airframe.hover_thrust x s, thrust-to-weight = airframe's / s (e.g. 1.25: 25 % heavier)"
+    )
 
     mass: Kilograms | None = Field(None, gt=0.05, le=50.0, description="kg; default airframe.mass")
     hover_thrust: Number | None = Field(
@@ -72,8 +79,19 @@ class SensorsConfig(Section):
     baro_bias: Meters = Field(0.5, ge=0.0, le=100.0, description="std of the per-run offset")
 
 
+class MountErrorConfig(Section):
+    """How the camera truly sits on the body, relative to what ``camera.mount`` says (deg, added to its angles)."""
+
+    roll: Deg = Field(0.0, ge=-45.0, le=45.0, description="true camera.mount.roll minus the configured one, deg")
+    pitch: Deg = Field(0.0, ge=-45.0, le=45.0, description="true camera.mount.pitch minus the configured one, deg "
+                       "(+: the camera looks higher than configured; a gate ahead renders lower)")
+    yaw: Deg = Field(0.0, ge=-45.0, le=45.0, description="true camera.mount.yaw minus the configured one, deg")
+
+
 class SimCameraConfig(Section):
     """The geometric camera: true pose + gate -> pixel box (intrinsics from the ``camera`` section)."""
+
+    mount_error: MountErrorConfig = MountErrorConfig()
 
     pixel_noise: Pixels = Field(1.0, ge=0.0, le=100.0, description="std of box centre/size noise, px")
     noise_model: Literal["white", "detector"] = Field(

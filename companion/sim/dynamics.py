@@ -59,12 +59,20 @@ class QuadParams:
 
     @classmethod
     def from_config(cls, cfg: Any) -> QuadParams:
-        """From a Config: true mass/hover/T-W from ``sim.quad`` when set there, else ``airframe``."""
+        """From a Config: true mass/hover/T-W from ``sim.quad`` when set there, else ``airframe`` scaled by
+        ``sim.quad.mass_scale`` (a heavier vehicle, same motors: more hover thrust, less thrust-to-weight)."""
         af, q = cfg.airframe, cfg.sim.quad
+        s = float(q.mass_scale)
+        hover = q.hover_thrust if q.hover_thrust is not None else af.hover_thrust * s
+        tw = q.thrust_to_weight if q.thrust_to_weight is not None else af.thrust_to_weight / s
+        if not (0.05 < hover < 0.95 and tw > 1.0):
+            raise ValueError(f"sim.quad.mass_scale {s:g}: the vehicle would need hover thrust {hover:.2f} and have "
+                             f"thrust-to-weight {tw:.2f}; it could not fly (hover thrust must be in (0.05, 0.95), "
+                             f"thrust-to-weight > 1)")
         return cls(
-            mass=q.mass if q.mass is not None else af.mass,
-            hover_thrust=q.hover_thrust if q.hover_thrust is not None else af.hover_thrust,
-            thrust_to_weight=q.thrust_to_weight if q.thrust_to_weight is not None else af.thrust_to_weight,
+            mass=q.mass if q.mass is not None else af.mass * s,
+            hover_thrust=hover,
+            thrust_to_weight=tw,
             tau_omega=q.tau_omega,
             tau_att=q.tau_att,
             tau_thrust=q.tau_thrust,

@@ -31,7 +31,7 @@ from companion.engagement import Phase
 from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.reasons import Reason
-from companion.sim.camera import GeometricCamera, detector_noise
+from companion.sim.camera import GeometricCamera, detector_noise, true_camera_config
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
 from companion.sim.gates import MOTIONS, MotionKind
 from companion.sim.scenario import Scenario, make_scenario
@@ -240,7 +240,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
 
         make_camera = geometric_camera_substitute(cfg)
     # The engagement protocol sees a detector-like box: the ring's extent clipped to the image.
-    camera = make_camera(CameraModel.from_config(cfg.camera), sim.camera.pixel_noise,
+    # The camera sees through the true mount (sim.camera.mount_error); the controller keeps the configured one.
+    camera = make_camera(CameraModel.from_config(true_camera_config(cfg)), sim.camera.pixel_noise,
                          sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box or engaged)
     if sim.camera.noise_model == "detector" and isinstance(camera, GeometricCamera):
         camera.use_detector_noise(detector_noise(cfg, rng_cam))
