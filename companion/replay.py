@@ -213,7 +213,8 @@ def replay(
             if d.changed and d.phase.done:
                 ended = f"{d.phase.value} ({d.reason.name if d.reason else ''}): {d.why}"
                 end_name = f"{d.phase.value} {d.reason.name if d.reason else ''}".strip()
-            tally.add(d.phase.value, d.events, box, gts[k] if k < len(gts) else None, end_name)
+            # Judged: the box the engagement used (a box it rejected as not the target is none).
+            tally.add(d.phase.value, d.events, core.engagement.used_box, gts[k] if k < len(gts) else None, end_name)
             asp = d.setpoint
             raw = los_world(model, box.cx, box.cy, R) if box is not None else None
             sp = co.setpoint
