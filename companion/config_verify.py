@@ -35,7 +35,8 @@ class ConfirmConfig(Section):
 
     rc_channel: int = Field(7, ge=1, le=18, description="RC channel of the engage switch (1-based, RC_CHANNELS)")
     threshold: Number = Field(
-        0.5, ge=-1.0, le=1.0, description="switch on when the channel reads above this (mavsdk's -1..1 scale)")
+        1700.0, ge=800.0, le=2200.0, description="us; the switch is on when its channel reads above this "
+        "(RC_CHANNELS chanN_raw, PWM microseconds)")
     max_age: Seconds = Field(
         0.5, gt=0.0, le=10.0, description="s; an RC reading older than this counts as the switch off")
 

@@ -189,6 +189,8 @@ class Engagement:
     verifier: TargetVerifier | None = None  # is a box the configured target (companion/verify.py); None = no check
     _unverified: bool = False  # the last box failed verification (one event per spell)
     used_box: BoundingBox | None = None  # the box this step's decisions used (None: none, or rejected)
+    awaiting: bool = False  # a stable candidate waits for the operator's confirmation (app.engage confirm)
+    _confirm: bool | None = None  # this step's confirmation (None: not needed)
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -211,12 +213,14 @@ class Engagement:
     # -- the step ------------------------------------------------------------------------------------
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray, baro_rel_alt: float | None,
              events: Iterable[LinkEvent] = (), accel_frd: np.ndarray | None = None,
-             t_now: float | None = None) -> Decision:
+             t_now: float | None = None, confirm: bool | None = None) -> Decision:
         """One frame captured at ``t`` (s, any monotonic clock): its box (or None), the attitude estimate at
         ``t`` (NED/FRD wxyz), the barometric altitude above take-off (m, None if unknown), link/pilot events,
         and for the controller the accelerometer (body FRD specific force, m/s^2) and the time now (the
-        frame's age), when the caller has them."""
+        frame's age), when the caller has them. ``confirm``: the operator's confirmation (companion/confirm.py;
+        None: not needed, app.engage auto)."""
         self._imu = (accel_frd, t_now)
+        self._confirm = confirm
         if self._t0 is None:
             self._t0 = self._t_phase = t
         p = self.params
@@ -262,6 +266,8 @@ class Engagement:
                 return self._end(t, Phase.ABORT, Reason.LINK_LOST, "telemetry lost")
             what = "vehicle left OFFBOARD" if "offboard_lost" in ev else "vehicle disarmed"
             return self._end(t, Phase.ABORT, Reason.PILOT_TAKEOVER, what)
+        if ph.commanding and self._confirm is False:
+            return self._end(t, Phase.ABORT, Reason.NOT_CONFIRMED, "the operator withdrew the confirmation")
         if ph is Phase.ACQUIRE:
             return self._acquire(t, box, q_wxyz_ned_frd)
         if ph is Phase.ENGAGE:
@@ -276,8 +282,17 @@ class Engagement:
     # -- phases ----------------------------------------------------------------------------------------
     def _acquire(self, t: float, box: BoundingBox | None, q: np.ndarray) -> Decision:
         p = self.params
+        if self._streak >= p.acquire_frames and self._confirm is False:
+            # app.engage confirm: PX4 keeps holding; the candidate is shown until the operator confirms it.
+            first, self.awaiting = not self.awaiting, True
+            if t - self._t_phase > p.acquire_timeout:
+                return self._end(t, Phase.LAND, Reason.NO_TARGET,
+                                 f"the candidate was not confirmed within {p.acquire_timeout:.1f} s")
+            return Decision(t, Phase.ACQUIRE, None, events=("candidate awaiting confirmation",) if first else ())
+        self.awaiting = False
         if self._streak >= p.acquire_frames:
-            return self._start_engagement(t, box, q, f"stable track for {self._streak} frames")
+            return self._start_engagement(t, box, q, f"stable track for {self._streak} frames"
+                                          + (", confirmed by the operator" if self._confirm else ""))
         if t - self._t_phase > p.acquire_timeout:
             return self._end(t, Phase.LAND, Reason.NO_TARGET, f"no stable track within {p.acquire_timeout:.1f} s")
         return Decision(t, Phase.ACQUIRE, None)

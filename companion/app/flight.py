@@ -19,7 +19,7 @@ import contextlib
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
@@ -34,6 +34,7 @@ from companion.app.outcome import GateJudge, verdict
 from companion.app.perframe import frame_input, log_step
 from companion.app.safeend import SafeEnds
 from companion.app.states import Reason, State, StateMachine, Transition
+from companion.confirm import ConfirmParams, OperatorConfirm, engage_mode
 from companion.controller import ControlOutput, PNController
 from companion.core import CoreStep, FlightCore
 from companion.engagement import Phase
@@ -310,6 +311,8 @@ class FlightApp(Monitors, SafeEnds):
         ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK, or an abort; here only I/O: camera, perception,
         the setpoint to PX4, the state machine and the log."""
         self.core = FlightCore.from_config(self.cfg, controller=self.ctrl)  # with the autopilot's hover thrust
+        self._confirm = (OperatorConfirm(ConfirmParams.from_config(self.cfg))
+                         if engage_mode(self.cfg) == "confirm" else None)
         try:
             await self._frame_loop(self.core)
         finally:
@@ -330,6 +333,9 @@ class FlightApp(Monitors, SafeEnds):
             inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
             if inp is None:
                 raise _Tripped(Abort(Reason.TELEMETRY_INVALID, "no attitude from the autopilot for a frame"))
+            if self._confirm is not None:  # app.engage confirm: the operator's RC switch (companion/confirm.py)
+                inp = replace(inp, confirm=self._confirm.step(self.clock(), getattr(self.link, "rc", None),
+                                                              core.engagement.awaiting))
             step = core.step(inp)
             d = step.decision
             if d.control is not None:
