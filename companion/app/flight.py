@@ -24,9 +24,10 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from companion.app import preflight
+from companion.app import liveview, preflight
 from companion.app.camera import CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
+from companion.app.liveview import ViewInfo
 from companion.app.logrows import log_detection, log_telemetry
 from companion.app.monitors import Monitors
 from companion.app.notify import Notifier
@@ -114,6 +115,8 @@ class FlightApp(Monitors, SafeEnds):
         self.ctrl = PNController.from_config(cfg)
         self.width, self.height = cfg.camera.width, cfg.camera.height
         self.core: FlightCore | None = None  # made when the frame loop starts (the hover thrust is known)
+        self._confirm: OperatorConfirm | None = None  # app.engage confirm (made with the core)
+        self._live: liveview.LiveView | None = None  # app.live_view
         self.stats = FlightStats()
         self._fault: Abort | None = None
         self._seq: asyncio.Task[None] | None = None
@@ -313,9 +316,14 @@ class FlightApp(Monitors, SafeEnds):
         self.core = FlightCore.from_config(self.cfg, controller=self.ctrl)  # with the autopilot's hover thrust
         self._confirm = (OperatorConfirm(ConfirmParams.from_config(self.cfg))
                          if engage_mode(self.cfg) == "confirm" else None)
+        self._live = liveview.from_config(self.cfg)  # app.live_view: the annotated stream (own threads)
+        if self._live is not None:
+            self.log.event(f"live view at {self._live.url}")
         try:
             await self._frame_loop(self.core)
         finally:
+            if self._live is not None:
+                self._live.close()
             await self._cancel_offboard_start()
 
     async def _frame_loop(self, core: FlightCore) -> None:
@@ -348,6 +356,8 @@ class FlightApp(Monitors, SafeEnds):
                 if reset is not None:
                     reset()  # the tracker must not hold on to (or coast) the gate we just passed
             self._note_hover(step)
+            if self._live is not None:  # O(1): a reference in a one-slot mailbox
+                self._live.offer(frame.image, ViewInfo(box, d.phase.value, core.engagement.awaiting, d.why))
             if await self._apply(frame, step, t_avail):
                 return
 
