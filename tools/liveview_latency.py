@@ -59,7 +59,8 @@ def flight(live: bool, tmp: Path) -> tuple[list[float], int]:
             if live:
                 threading.Thread(target=_reader, args=(app._live.port, stop, count), daemon=True).start()
 
-        run_flight(cfg, side)
+        reason, _, _ = run_flight(cfg, side)
+        print(f"  flight live_view={live}: {reason.name}", flush=True)
     finally:
         stop.set()
         px4.stop()
@@ -76,11 +77,16 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as d:
                 lat, parts = flight(live, Path(d))
             x = np.array(lat)
+            if not len(x):
+                print(f"pair {i} live_view={live}: no setpoints (the flight never engaged): skipped", flush=True)
+                continue
             pooled[live] += lat
             print(f"pair {i} live_view={'on ' if live else 'off'}: n={len(x)} median {np.median(x):.2f} ms, "
                   f"p95 {np.percentile(x, 95):.2f}, max {x.max():.2f}; stream parts read {parts}", flush=True)
     for live, lat in pooled.items():
         x = np.array(lat)
+        if not len(x):
+            continue
         rng = np.random.default_rng(0)
         boots = [np.median(rng.choice(x, len(x))) for _ in range(2000)]
         lo, hi = np.percentile(boots, [2.5, 97.5])
