@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
+from companion.config_verify import ConfirmConfig, EngageMode, LiveViewConfig, VerifyConfig
 from companion.configbase import Deg, Hertz, Meters, Number, Seconds, Section
 
 
@@ -179,6 +180,12 @@ class AppConfig(Section):
         "source", description="source: the perception camera source; synthetic: render from the vehicle pose"
     )
     synthetic: SyntheticCameraConfig = SyntheticCameraConfig()
+    verify: VerifyConfig = VerifyConfig()
+    engage: EngageMode | None = Field(
+        None, description="auto: engage on a stable track; confirm: only while the operator confirms (RC switch, "
+        "app.confirm); unset: confirm for a camera device or stream, auto for synthetic frames or a video file")
+    confirm: ConfirmConfig = ConfirmConfig()
+    live_view: LiveViewConfig = LiveViewConfig()
     status_interval: Seconds = Field(0.5, gt=0.0, le=60.0, description="s between status lines")
 
 

@@ -51,6 +51,7 @@ class FrameInput:
     accel_frd: np.ndarray | None = None  # accelerometer for the controller (closing speed, drag), None: not used
     t_now: float | None = None  # when the frame is processed (its age = t_now - t), None: not known
     imu: ImuReading | None = None  # the newest IMU sample, for the hover-thrust estimate
+    confirm: bool | None = None  # the operator's confirmation (app.engage confirm, companion/confirm.py); None: auto
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,7 +103,7 @@ class FlightCore:
     # -- the step --------------------------------------------------------------------------------------
     def step(self, inp: FrameInput) -> CoreStep:
         d = self.engagement.step(inp.t, inp.box, inp.q_wxyz_ned_frd, inp.baro_rel_alt, inp.events,
-                                 accel_frd=inp.accel_frd, t_now=inp.t_now)
+                                 accel_frd=inp.accel_frd, t_now=inp.t_now, confirm=inp.confirm)
         hover = hover_input = None
         if d.setpoint is not None and d.phase.commanding:
             a_up = None

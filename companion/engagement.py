@@ -44,6 +44,7 @@ from companion.guidance import Setpoint
 from companion.limits import CloseDetector, SafetyLimits
 from companion.reasons import Reason
 from companion.targetlock import LockParams, TargetLock
+from companion.verify import TargetVerifier, VerifyParams
 from perception.los import CameraModel
 from perception.types import BoundingBox
 
@@ -185,6 +186,11 @@ class Engagement:
     _last_size: float = 0.0  # larger side of the last box the controller used, px
     lock: TargetLock | None = None  # is a box still the engaged gate (companion/targetlock.py); None = no check
     _rejecting: bool = False  # the last box was rejected by the lock (one event per spell)
+    verifier: TargetVerifier | None = None  # is a box the configured target (companion/verify.py); None = no check
+    _unverified: bool = False  # the last box failed verification (one event per spell)
+    used_box: BoundingBox | None = None  # the box this step's decisions used (None: none, or rejected)
+    awaiting: bool = False  # a stable candidate waits for the operator's confirmation (app.engage confirm)
+    _confirm: bool | None = None  # this step's confirmation (None: not needed)
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -193,7 +199,10 @@ class Engagement:
             g = cfg.guidance
             lock = TargetLock(LockParams(g.v_rel_bar, g.gate_radius, cfg.los_filter.max_rate,
                                          float(cfg.perception.max_growth_rate)), CameraModel.from_config(cfg.camera))
-        return cls.create(params or EngagementParams.from_config(cfg), controller, cfg.app, cfg.safety, lock)
+        e = cls.create(params or EngagementParams.from_config(cfg), controller, cfg.app, cfg.safety, lock)
+        if cfg.app.verify.enabled:
+            e.verifier = TargetVerifier(VerifyParams.from_config(cfg))
+        return e
 
     @classmethod
     def create(cls, params: EngagementParams, controller: Steering, app: AppConfig,
@@ -204,12 +213,14 @@ class Engagement:
     # -- the step ------------------------------------------------------------------------------------
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray, baro_rel_alt: float | None,
              events: Iterable[LinkEvent] = (), accel_frd: np.ndarray | None = None,
-             t_now: float | None = None) -> Decision:
+             t_now: float | None = None, confirm: bool | None = None) -> Decision:
         """One frame captured at ``t`` (s, any monotonic clock): its box (or None), the attitude estimate at
         ``t`` (NED/FRD wxyz), the barometric altitude above take-off (m, None if unknown), link/pilot events,
         and for the controller the accelerometer (body FRD specific force, m/s^2) and the time now (the
-        frame's age), when the caller has them."""
+        frame's age), when the caller has them. ``confirm``: the operator's confirmation (companion/confirm.py;
+        None: not needed, app.engage auto)."""
         self._imu = (accel_frd, t_now)
+        self._confirm = confirm
         if self._t0 is None:
             self._t0 = self._t_phase = t
         p = self.params
@@ -218,6 +229,15 @@ class Engagement:
             whole = complete_clipped_box(box, p.width, p.height, p.cut_edge_px)
             box = whole if whole.is_valid(p.width, p.height) else box
         lock_event = ""
+        if valid and self.verifier is not None and self.phase in (Phase.ACQUIRE, Phase.ENGAGE):
+            assert box is not None
+            why = self._verify(self.verifier, t, box, q_wxyz_ned_frd)
+            if why:  # not the target: no box (ACQUIRE: the stable-track streak starts again)
+                if not self._unverified:
+                    lock_event = (f"gate {self.passes[-1].gate}: box rejected, {why}" if self.phase is Phase.ENGAGE
+                                  else f"candidate rejected, {why}")
+                valid, box = False, None
+            self._unverified = bool(why)
         if valid and self.phase is Phase.ENGAGE and self.lock is not None:
             assert box is not None
             chk = self.lock.check(t, box, R_from_quat_wxyz(q_wxyz_ned_frd))
@@ -229,6 +249,7 @@ class Engagement:
                 valid, box = False, None
             self._rejecting = not chk.ok
         self._streak = self._streak + 1 if valid else 0
+        self.used_box = box if valid else None  # what the decisions below saw (replay judges it against labels)
         d = self._step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt, events)
         if lock_event:
             d = replace(d, events=(*d.events, lock_event))
@@ -245,6 +266,8 @@ class Engagement:
                 return self._end(t, Phase.ABORT, Reason.LINK_LOST, "telemetry lost")
             what = "vehicle left OFFBOARD" if "offboard_lost" in ev else "vehicle disarmed"
             return self._end(t, Phase.ABORT, Reason.PILOT_TAKEOVER, what)
+        if ph.commanding and self._confirm is False:
+            return self._end(t, Phase.ABORT, Reason.NOT_CONFIRMED, "the operator withdrew the confirmation")
         if ph is Phase.ACQUIRE:
             return self._acquire(t, box, q_wxyz_ned_frd)
         if ph is Phase.ENGAGE:
@@ -259,8 +282,17 @@ class Engagement:
     # -- phases ----------------------------------------------------------------------------------------
     def _acquire(self, t: float, box: BoundingBox | None, q: np.ndarray) -> Decision:
         p = self.params
+        if self._streak >= p.acquire_frames and self._confirm is False:
+            # app.engage confirm: PX4 keeps holding; the candidate is shown until the operator confirms it.
+            first, self.awaiting = not self.awaiting, True
+            if t - self._t_phase > p.acquire_timeout:
+                return self._end(t, Phase.LAND, Reason.NO_TARGET,
+                                 f"the candidate was not confirmed within {p.acquire_timeout:.1f} s")
+            return Decision(t, Phase.ACQUIRE, None, events=("candidate awaiting confirmation",) if first else ())
+        self.awaiting = False
         if self._streak >= p.acquire_frames:
-            return self._start_engagement(t, box, q, f"stable track for {self._streak} frames")
+            return self._start_engagement(t, box, q, f"stable track for {self._streak} frames"
+                                          + (", confirmed by the operator" if self._confirm else ""))
         if t - self._t_phase > p.acquire_timeout:
             return self._end(t, Phase.LAND, Reason.NO_TARGET, f"no stable track within {p.acquire_timeout:.1f} s")
         return Decision(t, Phase.ACQUIRE, None)
@@ -295,7 +327,7 @@ class Engagement:
             return self._end(t, Phase.ABORT, abort.reason, abort.detail, out)
         est = self.close.update(t, box, getattr(out, "mode", "") == "pn")
         why = f"gate close: {est.why}"
-        if not est.close and not valid and self._near(est):
+        if not est.close and not valid and self._near(est) and not (self._rejecting or self._unverified):
             # The gate vanished while close (a detector often loses a ring that fills the image): the pass has
             # begun. Without this the controller would coast until "target lost" aborted a good pass.
             why = f"gate lost while close (time-to-contact {est.ttc:.2f} s, box {est.size_frac:.2f} of the width)"
@@ -372,6 +404,23 @@ class Engagement:
         return self._end(t, Phase.HANDBACK, Reason.OK, why)
 
     # -- helpers ---------------------------------------------------------------------------------------
+    def _verify(self, verifier: TargetVerifier, t: float, box: BoundingBox, q: np.ndarray) -> str:
+        """"" when ``box`` may be the configured target (companion/verify.py); at ACQUIRE also the same object
+        as the streak's earlier boxes (the target lock's size and direction rules)."""
+        acquiring = self.phase is Phase.ACQUIRE
+        if acquiring and self._streak == 0:
+            verifier.begin(box)  # a new candidate: its appearance is the reference
+        why = verifier.check(box, acquiring)
+        if why:
+            return why
+        if acquiring and self.lock is not None:
+            if self._streak == 0:
+                self.lock.reset()
+            chk = self.lock.check(t, box, R_from_quat_wxyz(q))
+            if not chk.ok:
+                return f"not one object: {chk.why.removeprefix('not the engaged gate: ')}"
+        return ""
+
     def _near(self, est: object) -> bool:
         """Close enough that losing the box means the pass has begun: within ``near_factor`` of a close
         trigger (time-to-contact or box size)."""
@@ -464,4 +513,4 @@ def complete_clipped_box(box: BoundingBox, width: int, height: int, edge_px: flo
         y0, y1 = (min(y0, y1 - size), y1) if cut_t else (y0, max(y1, y0 + size))
     else:
         x0, x1 = (min(x0, x1 - size), x1) if cut_l else (x0, max(x1, x0 + size))
-    return BoundingBox((x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0, box.confidence, box.t)
+    return replace(box, cx=(x0 + x1) / 2, cy=(y0 + y1) / 2, w=x1 - x0, h=y1 - y0)

@@ -38,6 +38,7 @@ CSV_COLUMNS = (
     # The engagement core (companion/engagement.py), as the app runs it on these frames: its phase, the
     # setpoint the app would have sent (blank while acquiring: PX4 holds) and its events.
     "state", "app_roll_deg", "app_pitch_deg", "app_yaw_deg", "app_thrust", "app_event",
+    "engagement",  # the engagement this frame belongs to (1, 2, ...: replay restarts the core after each end)
 )
 
 
@@ -111,6 +112,18 @@ def load_attitude(path: str | Path) -> AttitudeTrack:
     return _rows_to_track(_read_csv(p), str(p))
 
 
+def _load_labels(seq: str | Path | None) -> list[np.ndarray | None]:
+    """Per frame (k-th image of SEQ/images by name): its labelled gate boxes (xyxy px), None when unlabelled."""
+    if seq is None:
+        return []
+    from perception.evaluate import _load_folder
+
+    p = Path(seq)
+    if not (p / "images").is_dir():
+        raise ReplayError(f"{p}: --labels needs a sequence folder with images/ and labels/")
+    return [fr.boxes for fr in _load_folder(p, keep_unlabelled=True)]
+
+
 def _project_ned(model: Any, los_ned: np.ndarray, R_ned_frd: np.ndarray) -> tuple[float, float] | None:
     return model.project_body(R_ned_frd.T @ los_ned)
 
@@ -118,15 +131,19 @@ def _project_ned(model: Any, los_ned: np.ndarray, R_ned_frd: np.ndarray) -> tupl
 def replay(
     video: str | Path, cfg: Config, log: str | Path | None = None, out: str | Path | None = None,
     t0: float = 0.0, progress: bool = True, max_frames: int = 0, record: str | Path | None = None,
-    record_kw: dict[str, Any] | None = None,
+    record_kw: dict[str, Any] | None = None, labels: str | Path | None = None,
 ) -> dict[str, Any]:
-    """Run the replay; returns a summary (frames, boxes, output paths, pipeline stats)."""
+    """Run the replay; returns a summary (frames, boxes, output paths, pipeline stats, every engagement).
+
+    ``labels``: a sequence folder of ``companion perception eval``'s layout (images/ + labels/, frame k of the
+    video = the k-th image by name) to judge each engagement against (companion/engagetally.py)."""
     import cv2
     from tqdm import tqdm
 
     from companion.app.record import Recorder, RecordingReader, is_recording
     from companion.controller import PNController
     from companion.core import FlightCore, FrameInput
+    from companion.engagetally import EngagementTally
     from companion.frames import R_from_quat_wxyz
     from perception.los import CameraModel, los_world
     from perception.pipeline import Pipeline
@@ -159,6 +176,12 @@ def replay(
     ctrl = PNController.from_config(cfg)  # the controller alone on every frame (what this frame's box asks for)
     core = FlightCore.from_config(cfg)  # the app's decisions (its own controller)
     ended = ""
+    gts = _load_labels(labels)
+    tally = EngagementTally(min_spell=cfg.app.acquire_frames)
+    ends: list[str] = []
+    engagement_no = 1
+    passes_all: list[dict[str, Any]] = []
+    last: tuple[str, list[Any]] = ("ACQUIRE", [])  # the last ended engagement (the summary's "engagement")
     writer = cv2.VideoWriter(str(out_dir / "annotated.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
     if not writer.isOpened():
         cap.release()
@@ -186,8 +209,12 @@ def replay(
             d = step.decision
             if step.reset_tracker:
                 pipe.reset()  # as the flight does at RECOVER: the tracker drops the gate just passed
+            end_name = ""
             if d.changed and d.phase.done:
                 ended = f"{d.phase.value} ({d.reason.name if d.reason else ''}): {d.why}"
+                end_name = f"{d.phase.value} {d.reason.name if d.reason else ''}".strip()
+            # Judged: the box the engagement used (a box it rejected as not the target is none).
+            tally.add(d.phase.value, d.events, core.engagement.used_box, gts[k] if k < len(gts) else None, end_name)
             asp = d.setpoint
             raw = los_world(model, box.cx, box.cy, R) if box is not None else None
             sp = co.setpoint
@@ -207,9 +234,19 @@ def replay(
                 "app_pitch_deg": asp.pitch_deg if asp else "", "app_yaw_deg": asp.yaw_deg if asp else "",
                 "app_thrust": asp.thrust if asp else "",
                 "app_event": "; ".join([*d.events, d.why] if d.why else d.events),
+                "engagement": engagement_no,
             }
             rows.append(row)
             writer.write(_annotate(frame, pipe.last_detections, box, co, model, R, d.phase.value))
+            if end_name:
+                # Every engagement of the video is measured: after an end the app would be started again (as
+                # shadow mode does), with a fresh engagement and tracker.
+                ends.append(ended)
+                passes_all += [{"engagement": engagement_no, **g.as_dict()} for g in core.engagement.passes]
+                last = (d.phase.value, list(core.engagement.passes))
+                core.restart()
+                pipe.reset()
+                engagement_no += 1
             k += 1
             bar.update(1)
     finally:
@@ -228,8 +265,13 @@ def replay(
     summary = {
         "video": str(video), "frames": len(rows), "fps": fps, "boxes": sum(r["box"] for r in rows),
         "attitude": str(log) if log is not None else "level", "out": str(out_dir),
-        "engagement": {"state": core.phase.value, "end": ended,
-                       "passes": [g.as_dict() for g in core.engagement.passes]},
+        # The running engagement at the end of the video, else the last one that ended.
+        "engagement": {"state": core.phase.value if core.engagement.passes or not ends else last[0], "end": ended,
+                       "passes": [g.as_dict() for g in (core.engagement.passes or last[1])]},
+        "engagements": {**tally.finish(), "ends_in_order": ends,
+                        "passes": passes_all + [{"engagement": engagement_no, **g.as_dict()}
+                                                for g in core.engagement.passes],
+                        "labels": str(labels) if labels else None},
         "annotated": str(out_dir / "annotated.mp4"), "csv": str(out_dir / "replay.csv"),
         "plot": str(out_dir / "replay.png"), "pipeline": pipe.stats.summary(),
     }
@@ -305,25 +347,53 @@ def _plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def _tally_line(name: str, e: dict[str, Any]) -> str:
+    s = (f"{name}: {e['engagements']} engagement(s), {e['begun_on_wrong']} begun on a wrong object, "
+         f"{e['passes_claimed_wrong']}/{e['passes_claimed']} pass(es) claimed on one")
+    if e["engaged_frames"]:
+        s += (f", {e['engaged_frames_wrong']}/{e['engaged_frames']} labelled engaged frames on one "
+              f"(on the gate {e['on_gate_share']:.2f})")
+    if e["gate_spells"]:
+        s += f", {e['never_engaged_spells']}/{e['gate_spells']} gate-in-view spells never engaged"
+    return s
+
+
 def _cmd(args: argparse.Namespace) -> int:
     import sys
 
-    cfg = config_from_args(args)
-    try:
-        from companion.app.record import record_kwargs
+    from companion.engagetally import total
 
-        s = replay(args.video, cfg, args.log, args.out, args.t0, progress=not args.quiet, record=args.record,
-                   record_kw=record_kwargs(args))
-    except ValueError as e:  # ReplayError, DetectorError, TrackerError: already one line
-        if isinstance(e, UnicodeDecodeError):  # a binary --log file
-            e = ValueError(f"{args.log}: not a text flight log (byte 0x{e.object[e.start]:02x} at offset {e.start})")
-        print(f"companion replay: {e}", file=sys.stderr)
+    cfg = config_from_args(args)
+    videos, labels = list(args.video), list(args.labels or [])
+    if labels and len(labels) != len(videos):
+        print(f"companion replay: --labels: {len(labels)} given for {len(videos)} video(s) (one per video)",
+              file=sys.stderr)
         return 2
-    except (OSError, csv.Error) as e:  # an output folder that cannot be made, a log that is not text
-        where = getattr(e, "filename", None) or args.log or args.out
-        print(f"companion replay: {where}: {getattr(e, 'strerror', None) or e}", file=sys.stderr)
-        return 2
-    print(f"replay: {s['frames']} frames, box in {s['boxes']}; wrote {s['annotated']}, {s['csv']}, {s['plot']}")
+    tallies = []
+    for i, video in enumerate(videos):
+        out = args.out
+        if out is not None and len(videos) > 1:
+            out = str(Path(out) / Path(video).stem)
+        try:
+            from companion.app.record import record_kwargs
+
+            s = replay(video, cfg, args.log, out, args.t0, progress=not args.quiet, record=args.record,
+                       record_kw=record_kwargs(args), labels=labels[i] if labels else None)
+        except ValueError as e:  # ReplayError, DetectorError, TrackerError: already one line
+            if isinstance(e, UnicodeDecodeError):  # a binary --log file
+                e = ValueError(f"{args.log}: not a text flight log (byte 0x{e.object[e.start]:02x} at offset "
+                               f"{e.start})")
+            print(f"companion replay: {e}", file=sys.stderr)
+            return 2
+        except (OSError, csv.Error) as e:  # an output folder that cannot be made, a log that is not text
+            where = getattr(e, "filename", None) or args.log or out
+            print(f"companion replay: {where}: {getattr(e, 'strerror', None) or e}", file=sys.stderr)
+            return 2
+        print(f"replay: {s['frames']} frames, box in {s['boxes']}; wrote {s['annotated']}, {s['csv']}, {s['plot']}")
+        print("  " + _tally_line(Path(video).name, s["engagements"]))
+        tallies.append(s["engagements"])
+    if len(videos) > 1:
+        print("  " + _tally_line("total", total(tallies)))
     return 0
 
 
@@ -333,10 +403,16 @@ def register(subparsers: Any) -> None:
         description="Run detector + tracker + LOS + controller over a recorded video, as the app would have; "
         "write an annotated video (box, LOS, commanded attitude and thrust), a per-frame CSV and plots.",
     )
-    p.add_argument("video", help="recorded video file or a --record folder (frame size = camera.width/height)")
+    p.add_argument("video", nargs="+",
+                   help="recorded video file(s) or --record folder(s) (frame size = camera.width/height)")
+    p.add_argument("--labels", action="append", default=None, metavar="SEQ",
+                   help="ground truth per video (repeat in the videos' order): a sequence folder of `companion "
+                   "perception eval` (images/ + labels/; frame k = the k-th image by name); each engagement "
+                   "is then judged (begun / engaged / pass claimed on a wrong object, gate spells never engaged)")
     p.add_argument("--log", default=None, metavar="FLIGHT_LOG",
                    help="flight folder, or CSV / JSON-lines of t, qw, qx, qy, qz (NED/FRD); default: level")
-    p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: VIDEO_replay/ next to it)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (default: VIDEO_replay/ next to it; with several videos DIR/VIDEO_STEM/)")
     p.add_argument("--t0", type=float, default=0.0, help="flight time of the first frame, s (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     from companion.app.record import add_record_arguments

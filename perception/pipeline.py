@@ -49,11 +49,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from perception.appearance import descriptor
 from perception.detector import Detector
 from perception.tracker import (
     BoxKalman,
@@ -181,6 +182,8 @@ class Pipeline:
             out = self._clip(out)
         if out is not None:
             st.boxes += 1
+            # What the box shows, for the engagement's target verification (companion/verify.py).
+            out = replace(out, appearance=descriptor(frame, out))
         st.total_ms.append((time.perf_counter() - t0) * 1e3)
         return out
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 @dataclass(frozen=True, slots=True)
@@ -16,6 +16,9 @@ class BoundingBox:
     h: float
     confidence: float = 1.0
     t: float = 0.0  # capture time of the frame it came from, s (monotonic clock of the source)
+    # What the box shows (perception/appearance.py: a normalised hue-saturation histogram), for the target
+    # verification (companion/verify.py); None where no image was seen (geometric boxes).
+    appearance: tuple[float, ...] | None = field(default=None, compare=False, repr=False)
 
     def is_valid(self, width: int, height: int) -> bool:
         """Finite, positive size, centre inside the image: anything else is garbage from a detector."""

@@ -272,7 +272,8 @@ def test_the_step_sees_no_position_velocity_or_truth():
     import inspect
 
     params = list(inspect.signature(Engagement.step).parameters)
-    assert params == ["self", "t", "box", "q_wxyz_ned_frd", "baro_rel_alt", "events", "accel_frd", "t_now"]
+    assert params == ["self", "t", "box", "q_wxyz_ned_frd", "baro_rel_alt", "events", "accel_frd", "t_now",
+                      "confirm"]  # the operator's confirmation (companion/confirm.py): no position either
 
 
 def test_yawed_vehicle_passes_along_its_los():

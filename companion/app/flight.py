@@ -19,14 +19,15 @@ import contextlib
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from companion.app import preflight
+from companion.app import liveview, preflight
 from companion.app.camera import CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
+from companion.app.liveview import ViewInfo
 from companion.app.logrows import log_detection, log_telemetry
 from companion.app.monitors import Monitors
 from companion.app.notify import Notifier
@@ -34,6 +35,7 @@ from companion.app.outcome import GateJudge, verdict
 from companion.app.perframe import frame_input, log_step
 from companion.app.safeend import SafeEnds
 from companion.app.states import Reason, State, StateMachine, Transition
+from companion.confirm import ConfirmParams, OperatorConfirm, engage_mode
 from companion.controller import ControlOutput, PNController
 from companion.core import CoreStep, FlightCore
 from companion.engagement import Phase
@@ -113,6 +115,8 @@ class FlightApp(Monitors, SafeEnds):
         self.ctrl = PNController.from_config(cfg)
         self.width, self.height = cfg.camera.width, cfg.camera.height
         self.core: FlightCore | None = None  # made when the frame loop starts (the hover thrust is known)
+        self._confirm: OperatorConfirm | None = None  # app.engage confirm (made with the core)
+        self._live: liveview.LiveView | None = None  # app.live_view
         self.stats = FlightStats()
         self._fault: Abort | None = None
         self._seq: asyncio.Task[None] | None = None
@@ -310,9 +314,16 @@ class FlightApp(Monitors, SafeEnds):
         ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK, or an abort; here only I/O: camera, perception,
         the setpoint to PX4, the state machine and the log."""
         self.core = FlightCore.from_config(self.cfg, controller=self.ctrl)  # with the autopilot's hover thrust
+        self._confirm = (OperatorConfirm(ConfirmParams.from_config(self.cfg))
+                         if engage_mode(self.cfg) == "confirm" else None)
+        self._live = liveview.from_config(self.cfg)  # app.live_view: the annotated stream (own threads)
+        if self._live is not None:
+            self.log.event(f"live view at {self._live.url}")
         try:
             await self._frame_loop(self.core)
         finally:
+            if self._live is not None:
+                self._live.close()
             await self._cancel_offboard_start()
 
     async def _frame_loop(self, core: FlightCore) -> None:
@@ -330,6 +341,9 @@ class FlightApp(Monitors, SafeEnds):
             inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
             if inp is None:
                 raise _Tripped(Abort(Reason.TELEMETRY_INVALID, "no attitude from the autopilot for a frame"))
+            if self._confirm is not None:  # app.engage confirm: the operator's RC switch (companion/confirm.py)
+                inp = replace(inp, confirm=self._confirm.step(self.clock(), getattr(self.link, "rc", None),
+                                                              core.engagement.awaiting))
             step = core.step(inp)
             d = step.decision
             if d.control is not None:
@@ -342,6 +356,8 @@ class FlightApp(Monitors, SafeEnds):
                 if reset is not None:
                     reset()  # the tracker must not hold on to (or coast) the gate we just passed
             self._note_hover(step)
+            if self._live is not None:  # O(1): a reference in a one-slot mailbox
+                self._live.offer(frame.image, ViewInfo(box, d.phase.value, core.engagement.awaiting, d.why))
             if await self._apply(frame, step, t_avail):
                 return
 

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from companion.app.logrows import log_detection, log_telemetry
 from companion.app.perframe import frame_input, log_step
+from companion.confirm import engage_mode
 from companion.core import FlightCore
 
 if TYPE_CHECKING:
@@ -234,6 +235,9 @@ class _Session:
             self.log.event(f"shadow: {d.previous.value} -> {d.phase.value}: {d.why}")
             if d.previous.value == "ACQUIRE":
                 self.stats["engagements"] += 1
+                if engage_mode(self.cfg) == "confirm":  # the flight would have waited for the operator here
+                    self.log.event("shadow: would have asked the operator to confirm the candidate (app.engage "
+                                   "confirm) before engaging")
         for ev in d.events:
             self.log.event(f"shadow: {ev}")
         self.stats["passes"] = self._passes_before + step.passes_confirmed

@@ -171,12 +171,14 @@ class TelemetryStreams:
         self._last_rx = -math.inf
         self._lost = False
         self._mode_reports = 0
+        self.rc: Any = None  # the newest RC_CHANNELS (companion.confirm.RcReading): the engage switch
 
     def _start_telemetry(self) -> None:
         tel = self._telemetry
         streams: list[tuple[str, Callable[[], Any], Callable[[Any], None]]] = [
             ("attitude", lambda: self._direct.subscribe_message("ATTITUDE_QUATERNION"), self._on_attitude_msg),
             ("events", lambda: self._direct.subscribe_message("EVENT"), self._on_event_msg),
+            ("rc_channels", lambda: self._direct.subscribe_message("RC_CHANNELS"), self._on_rc_msg),
             ("imu", tel.subscribe_imu, self._on_imu),
             ("flight_mode", tel.subscribe_flight_mode, self._on_mode),
             ("armed", tel.subscribe_armed, self._on_armed),
@@ -221,6 +223,19 @@ class TelemetryStreams:
             self._reject("attitude", f"unreadable ({type(e).__name__})")
             return
         self._on_attitude(q, t_ms)
+
+    def _on_rc_msg(self, msg: Any) -> None:
+        """RC_CHANNELS (PWM us per channel): the operator's engage switch (companion/confirm.py)."""
+        from companion.confirm import RcReading
+
+        if not self._from_autopilot(msg):
+            return
+        try:
+            f = json.loads(msg.fields_json)
+            n = int(f.get("chancount", 18))
+            self.rc = RcReading(time.monotonic(), tuple(int(f[f"chan{i}_raw"]) for i in range(1, 19))[:max(n, 0)])
+        except (ValueError, KeyError, TypeError):
+            return  # unreadable: the reading goes stale, which withdraws a confirmation
 
     def _on_attitude(self, q: list[Any], t_ms: int) -> None:
         prev = self._attitude

@@ -31,7 +31,7 @@ def test_shadow_sends_nothing_and_logs_everything(tmp_path):
     px4.start()
     try:
         cfg = make_config(tmp_path, px4.url_for_mavsdk, "app.start=pilot", "app.synthetic.motion=linear_fast",
-                          "app.synthetic.distance=20")
+                          "app.synthetic.distance=20", "app.engage=confirm")
         code, folder, summary = asyncio.run(asyncio.wait_for(
             shadow(cfg, duration=10.0, handle_signals=False, plot=False), 60.0))
         ev = [e for _, e in px4.events]
@@ -59,6 +59,8 @@ def test_shadow_sends_nothing_and_logs_everything(tmp_path):
         assert np.isfinite(sp[c]).all()
     assert len(f["los"]) > 10
     assert any("shadow: ACQUIRE -> ENGAGE" in str(t) for t in f["events"]["text"])
+    # app.engage confirm: shadow engages as auto would and notes where the flight would have asked the operator
+    assert any("would have asked the operator to confirm" in str(t) for t in f["events"]["text"])
     png = plot_shadow(folder)
     assert png.stat().st_size > 10_000
 

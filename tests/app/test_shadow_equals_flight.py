@@ -183,7 +183,7 @@ def shadow_recording(cfg: Any, samples: list[Sample], tmp_path: Any) -> tuple[li
 
 @pytest.mark.parametrize("overrides", [[], ["hover.estimate=true"]], ids=["default", "hover-estimate"])
 def test_shadow_computes_what_the_flight_sends(tmp_path, overrides):
-    cfg = load_config([], ["app.acquire_frames=5", "safety.altitude_reference=488", *overrides])
+    cfg = load_config([], ["app.acquire_frames=5", "app.engage=auto", "safety.altitude_reference=488", *overrides])
     samples = recording(cfg)
     vehicle, app = fly_recording(cfg, samples, tmp_path)
     computed, session = shadow_recording(cfg, samples, tmp_path)

@@ -232,6 +232,11 @@ class SimPX4:
         with self._model.lock:
             self._wire.corrupt_attitude(on)
 
+    def set_rc(self, channels_us: list[int] | None) -> None:
+        """An RC transmitter: RC_CHANNELS at 10 Hz with these PWM values (us, channel 1 first); None: no RC."""
+        with self._model.lock:
+            self._wire.set_rc(channels_us)
+
     def force_disarm(self) -> None:
         """The kill switch (or a forced disarm from a ground station): motors off wherever the vehicle is."""
         with self._model.lock:

@@ -89,6 +89,7 @@ class MavlinkWire:
             mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.1,
             mavlink.MAVLINK_MSG_ID_ALTITUDE: 0.05,
             mavlink.MAVLINK_MSG_ID_HOME_POSITION: 2.0,
+            mavlink.MAVLINK_MSG_ID_RC_CHANNELS: 0.1,  # only while an RC is connected (set_rc)
         }
         self._rates: dict[int, float] = dict(self._default_rates)  # msg id -> interval s (0 = off)
         self._next_send: dict[int, float] = dict.fromkeys(self._rates, 0.0)
@@ -102,6 +103,7 @@ class MavlinkWire:
         self._nan_attitude = False
         self._event_seq = 0
         self._events_meta: Any = None
+        self._rc: list[int] | None = None  # RC channels (test switch set_rc); None: no RC, no RC_CHANNELS
 
     # ---------------------------------------------------------------------------------- socket
     def open(self, port: int) -> None:
@@ -136,6 +138,10 @@ class MavlinkWire:
     def corrupt_attitude(self, on: bool) -> None:
         """On: ATTITUDE_QUATERNION carries NaN (an estimator failure, or a corrupted link)."""
         self._nan_attitude = on
+
+    def set_rc(self, channels_us: list[int] | None) -> None:
+        """An RC transmitter's channels (PWM us, channel 1 first, up to 18), sent as RC_CHANNELS; None: no RC."""
+        self._rc = None if channels_us is None else [int(c) for c in channels_us][:18]
 
     # --------------------------------------------------------------------------- MAVLink input
     def receive_all(self, sock: socket.socket) -> None:
@@ -393,5 +399,8 @@ class MavlinkWire:
                 _SENSORS_ALL, _SENSORS_ALL, health, 200, 16200, 1000, 90, 0, 0, 0, 0, 0, 0, 0, 0, 0))
         if mavlink.MAVLINK_MSG_ID_HOME_POSITION in due:
             self._send_home()
+        if mavlink.MAVLINK_MSG_ID_RC_CHANNELS in due and self._rc is not None:
+            ch = self._rc + [65535] * (18 - len(self._rc))  # UINT16_MAX: channel not in use
+            self._send(self._mav.rc_channels_encode(ms, len(self._rc), *ch, 255))
         if mavlink.MAVLINK_MSG_ID_HEARTBEAT in due:
             self._send_heartbeat()

@@ -1,0 +1,55 @@
+"""Config sections of target verification, operator-confirmed engagement and the live view (issue 18)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from companion.configbase import Deg, Meters, Number, Seconds, Section
+
+
+class VerifyConfig(Section):
+    """Is a box the configured target (companion/verify.py): checked at ACQUIRE and during ENGAGE."""
+
+    enabled: bool = Field(True, description="check candidates and engaged boxes against the configured target")
+    max_view_angle: Deg = Field(
+        75.0, ge=0.0, lt=90.0, description="deg; a ring seen at most this far off its axis: an uncut box's "
+        "min/max side ratio >= cos(this) (0 = no shape rule)")
+    max_range: Meters = Field(
+        0.0, ge=0.0, le=10000.0, description="m; a box smaller than the gate (guidance.gate_radius) at this range "
+        "is not the gate (0 = no far limit)")
+    min_acquire_range: Meters = Field(
+        0.0, ge=0.0, le=1000.0, description="m; at ACQUIRE a box larger than the gate at this range is not the "
+        "gate to engage (0 = no near limit)")
+    size_tolerance: Number = Field(
+        0.7, gt=0.0, le=1.0, description="a detector's box may be this factor tighter (or 1/this looser) than "
+        "the ring's projection")
+    min_similarity: Number = Field(
+        0.0, ge=0.0, le=1.0, description="appearance (hue-saturation histogram of the box, Bhattacharyya "
+        "coefficient) against the box the track began with; below it is another object (0 = off)")
+
+
+class ConfirmConfig(Section):
+    """The operator's confirmation (app.engage: confirm): an RC switch read from PX4 (RC_CHANNELS)."""
+
+    rc_channel: int = Field(7, ge=1, le=18, description="RC channel of the engage switch (1-based, RC_CHANNELS)")
+    threshold: Number = Field(
+        1700.0, ge=800.0, le=2200.0, description="us; the switch is on when its channel reads above this "
+        "(RC_CHANNELS chanN_raw, PWM microseconds)")
+    max_age: Seconds = Field(
+        0.5, gt=0.0, le=10.0, description="s; an RC reading older than this counts as the switch off")
+
+
+class LiveViewConfig(Section):
+    """The annotated camera stream over HTTP (MJPEG): box, track state, phase, the candidate awaiting confirmation."""
+
+    enabled: bool = Field(False, description="serve the annotated stream at http://ADDRESS:PORT/")
+    port: int = Field(8090, ge=0, le=65535, description="TCP port (0 = any free port, printed at start)")
+    address: str = Field(
+        "127.0.0.1", description="listen address; 127.0.0.1 unless set (another address exposes the camera)")
+    max_fps: Number = Field(15.0, gt=0.0, le=120.0, description="frames per second served at most")
+    quality: int = Field(70, ge=10, le=100, description="JPEG quality")
+
+
+EngageMode = Literal["auto", "confirm"]
