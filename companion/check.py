@@ -39,7 +39,10 @@ def _cmd_check(args: argparse.Namespace) -> int:
         why = detector_available(cfg)
         if why is not None:
             raise ConfigError(f"perception.model: {cfg.perception.model}: detector does not load ({why})")
-        det = f"loads ({cfg.perception.model or 'the shipped gate detector'})"
+        from companion.app.assemble import real_frames
+        from perception.detector import model_path
+
+        det = f"loads ({model_path(cfg.perception, real_frames(cfg)).name})"
     elif args.no_detector:
         det = "not checked (--no-detector)"
     print(f"config OK: {', '.join(['config/default.yaml', *files])}" + (

@@ -13,7 +13,8 @@ class PerceptionConfig(Section):
     # Detector (perception/detector.py)
     model: str = Field(
         "", description="path to a YOLOv8-layout ONNX file, or the file name of a shipped one in perception/models/ "
-        "(gate_detector_real.onnx); empty = the shipped gate detector",
+        "(gate_detector_real.onnx); empty = the shipped model for the frames: gate_detector_real.onnx for a real "
+        "camera (app.camera: source, live or replayed), gate_detector.onnx for rendered frames",
     )
     class_name: str = Field("gate", description="class of the target in the model's class list")
     classes: list[str] = Field(

@@ -172,7 +172,8 @@ def replay(
     out_dir = Path(out) if out is not None else video.with_name(video.stem + "_replay")
     out_dir.mkdir(parents=True, exist_ok=True)
     model = CameraModel.from_config(cfg.camera)
-    pipe = Pipeline.from_config(cfg)
+    # Recorded frames of a real camera unless the config says they were rendered (app.camera: synthetic).
+    pipe = Pipeline.from_config(cfg, real_frames=cfg.app.camera == "source")
     ctrl = PNController.from_config(cfg)  # the controller alone on every frame (what this frame's box asks for)
     core = FlightCore.from_config(cfg)  # the app's decisions (its own controller)
     ended = ""
@@ -273,7 +274,7 @@ def replay(
                                                 for g in core.engagement.passes],
                         "labels": str(labels) if labels else None},
         "annotated": str(out_dir / "annotated.mp4"), "csv": str(out_dir / "replay.csv"),
-        "plot": str(out_dir / "replay.png"), "pipeline": pipe.stats.summary(),
+        "plot": str(out_dir / "replay.png"), "pipeline": pipe.stats.summary(), "model": str(pipe.det.path),
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

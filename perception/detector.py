@@ -26,7 +26,21 @@ from perception.types import BoundingBox
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 SHIPPED_MODEL = MODELS_DIR / "gate_detector.onnx"
+# Trained on real-world photos; on real flythrough video it began no engagement on clutter where the default
+# model began them on lit cabinets and walls (docs/verification.md): the default for real camera frames.
+SHIPPED_REAL_MODEL = MODELS_DIR / "gate_detector_real.onnx"
 PAD_VALUE = 114
+
+
+def model_path(pc, real_frames: bool = False) -> Path:  # pc: companion.config_perception.PerceptionConfig
+    """The ONNX file a config names: ``perception.model`` (a path, or the bare file name of a shipped model), or
+    when it is empty the shipped model for the frames: real-world for a real camera, default for rendered ones."""
+    if not pc.model:
+        return SHIPPED_REAL_MODEL if real_frames else SHIPPED_MODEL
+    path = Path(pc.model)
+    if not path.exists() and path.name == str(pc.model) and (MODELS_DIR / path.name).is_file():
+        path = MODELS_DIR / path.name  # a bare file name of a shipped model, e.g. gate_detector_real.onnx
+    return path
 
 
 class DetectorError(ValueError):
@@ -266,10 +280,10 @@ class Detector:
         self.last_ms = 0.0
 
     @classmethod
-    def from_config(cls, pc) -> Detector:  # pc: companion.config_perception.PerceptionConfig
-        path = Path(pc.model) if pc.model else SHIPPED_MODEL
-        if pc.model and not path.exists() and path.name == str(pc.model) and (MODELS_DIR / path.name).is_file():
-            path = MODELS_DIR / path.name  # a bare file name of a shipped model, e.g. gate_detector_real.onnx
+    def from_config(cls, pc, real_frames: bool = False) -> Detector:  # pc: config_perception.PerceptionConfig
+        """``real_frames``: the frames come from a real camera (live or recorded), where an unset
+        ``perception.model`` means the real-world model; rendered frames keep the default one."""
+        path = model_path(pc, real_frames)
         return cls(
             path, pc.class_name, pc.input_size or None, pc.confidence, pc.nms_iou, pc.backend,
             list(pc.classes) or None, pc.threads,

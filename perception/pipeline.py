@@ -143,9 +143,10 @@ class Pipeline:
         self.reset()
 
     @classmethod
-    def from_config(cls, cfg: Config, detector: Detector | None = None) -> Pipeline:
+    def from_config(cls, cfg: Config, detector: Detector | None = None, real_frames: bool = False) -> Pipeline:
+        """``real_frames``: frames of a real camera (perception/detector.py model_path picks the model)."""
         pc = cfg.perception
-        det = detector if detector is not None else Detector.from_config(pc)
+        det = detector if detector is not None else Detector.from_config(pc, real_frames)
         trk = NanoTracker(pc.nanotrack_backbone, pc.nanotrack_neckhead) if pc.tracker == "nanotrack" else None
         return cls(det, pc, cfg.camera.width, cfg.camera.height, trk)
 

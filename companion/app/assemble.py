@@ -66,7 +66,8 @@ def _build_camera(cfg: Config, link: Any, log: Any, judge: Any = None,
     from companion.app.camera import DeviceCamera, PipelinePerception
     from perception.pipeline import Pipeline
 
-    return DeviceCamera.open(cfg.perception.source), PipelinePerception(Pipeline.from_config(cfg)), True
+    pipe = Pipeline.from_config(cfg, real_frames=True)
+    return DeviceCamera.open(cfg.perception.source), PipelinePerception(pipe), True
 
 
 def gate_logger(log: FlightLog, judge: GateJudge | None = None,
@@ -85,12 +86,17 @@ def gate_logger(log: FlightLog, judge: GateJudge | None = None,
     return on_gate
 
 
+def real_frames(cfg: Config) -> bool:
+    """The detector sees a real camera's frames (app.camera: source), not rendered ones."""
+    return cfg.app.camera == "source" and str(cfg.perception.source).strip() != "synthetic"
+
+
 def detector_available(cfg: Config) -> str | None:
     """None when the configured detector loads, else the one-line reason it does not."""
     try:
         from perception.detector import Detector
 
-        Detector.from_config(cfg.perception)
+        Detector.from_config(cfg.perception, real_frames=real_frames(cfg))
         return None
     except Exception as e:  # a missing or broken model file
         return f"{type(e).__name__}: {e}"

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import camera_uptilt
+from companion.config import Config, camera_uptilt
 
 Confirm = Callable[[str], Awaitable[bool]]
 CONFIRM_TIMEOUT = 120.0  # s the operator has to answer
@@ -177,7 +177,14 @@ async def _camera(app: Any) -> dict[str, Any]:
     rate = (len(times) - 1) / span if span > 0 else None
     return {"source": cfg.perception.source, "rate_hz": rate, "configured_rate_hz": cfg.camera.rate,
             "frames": len(times), "detector_ms_p50": float(np.median(ms)) if ms else None,
-            "detector": f"ran on {len(times)} frames, gate boxes in {boxes}"}
+            "detector": f"{_model_name(cfg)} ran on {len(times)} frames, gate boxes in {boxes}"}
+
+
+def _model_name(cfg: Config) -> str:
+    from companion.app.assemble import real_frames
+    from perception.detector import model_path
+
+    return model_path(cfg.perception, real_frames(cfg)).name
 
 
 def _envelope(app: Any) -> dict[str, Any]:
