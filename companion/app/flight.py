@@ -33,7 +33,7 @@ from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
 from companion.app.perframe import frame_input, log_step
 from companion.app.safeend import SafeEnds
-from companion.app.states import Reason, State, StateMachine, Transition
+from companion.app.states import Reason, State, StateMachine, Transition, VehicleView
 from companion.controller import ControlOutput, PNController
 from companion.core import CoreStep, FlightCore
 from companion.engagement import Phase
@@ -109,7 +109,7 @@ class FlightApp(Monitors, SafeEnds):
         # With a live status line, a state message first clears the line it would otherwise append to.
         self._tty = bool(stderr is not None and getattr(stderr, "isatty", lambda: False)())
         sm_err = _ClearLine(stderr) if status_line and self._tty else stderr
-        self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=sm_err)
+        self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=sm_err, vehicle=self._vehicle_view)
         self.ctrl = PNController.from_config(cfg)
         self.width, self.height = cfg.camera.width, cfg.camera.height
         self.core: FlightCore | None = None  # made when the frame loop starts (the hover thrust is known)
@@ -480,6 +480,14 @@ class FlightApp(Monitors, SafeEnds):
         if b is None or self._baro0 is None or not math.isfinite(b):
             return None
         return b - self._baro0
+
+    def _vehicle_view(self) -> VehicleView | None:
+        """What PX4 last reported (None before the link connected): the state machine checks terminal claims."""
+        if not self._connected:
+            return None
+        link = self.link
+        return VehicleView(armed=link.armed, mode=link.flight_mode, landed=link.landed_state,
+                           link_ok=bool(link.link_ok))
 
     # ------------------------------------------------------------------------------ logging
     def _on_transition(self, tr: Transition) -> None:

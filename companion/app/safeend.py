@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from companion.app import linkerrors as linkmod
 from companion.app.camera import CameraFailed
-from companion.app.states import GROUND_STATES, PILOT_MODES, Reason, State
+from companion.app.states import GROUND_STATES, PILOT_MODES, TRANSITIONS, Reason, State
 from companion.limits import Abort
 
 if TYPE_CHECKING:
@@ -35,6 +35,12 @@ class SafeEnds:
         only when landed and disarmed; otherwise the state names what the autopilot reports."""
         st, r, d = self.sm.state, fault.reason, fault.detail
         self._last_setpoint = math.inf  # the watchdog has nothing more to guard
+        if r is Reason.VEHICLE_BUSY and st in GROUND_STATES:
+            self.sm.go(State.REFUSED, d, r)
+            return
+        if st in GROUND_STATES:
+            await self._ground_end(d, r)
+            return
         if r is Reason.LINK_LOST:
             await self.link.close()
             self.sm.go(State.SAFE_FAILSAFE_LINK, d + "; streaming stopped, PX4's own failsafe acts", r)
@@ -44,15 +50,6 @@ class SafeEnds:
             # ends MAVSDK's resending too.
             await self.link.close()
             self._go_seen(d + "; we stopped commanding", r)
-            return
-        if r is Reason.VEHICLE_BUSY and st in GROUND_STATES:
-            self.sm.go(State.REFUSED, d, r)
-            return
-        if st in GROUND_STATES:
-            if self.link.armed is True:  # e.g. the arm ACK was lost but PX4 armed: say so, do not claim "not armed"
-                self._go_seen(d + "; the vehicle is armed", r)
-            else:
-                self.sm.go(State.ABORT_NOT_ARMED, d, r)
             return
         pilot_start = self.cfg.app.start == "pilot"
         if st.offboard:
@@ -87,6 +84,53 @@ class SafeEnds:
             return
         self._go_seen(d, r)
 
+    async def _ground_end(self, d: str, r: Reason) -> None:
+        """A fault before take-off. "Not armed" only when live telemetry shows it: an ARM command sent into a
+        link outage reaches PX4 when the link returns, so after an arm command the app waits for the link and a
+        fresh heartbeat, and disarms a vehicle that armed on the ground (PX4 would hold it armed until
+        COM_DISARM_PRFLT)."""
+        link, lc = self.link, self.cfg.link
+        arm_sent = any(h.dst is State.ARM for h in self.sm.history)
+        if not arm_sent:
+            if link.armed is True:  # armed by someone else meanwhile: say so, never "not armed"
+                await link.close()
+                self._go_seen(d + "; the vehicle is armed (not by us)", r)
+                return
+            if not link.link_ok:
+                await link.close()
+                self.sm.go(State.ABORT_NOT_ARMED, d + "; no arm command was sent", r)
+                return
+            self.sm.go(State.ABORT_NOT_ARMED, d, r)
+            return
+        try:
+            await link.wait_link_ok(lc.command_timeout + lc.link_lost_timeout)
+            n0 = link.mode_reports  # only a heartbeat sent after now shows PX4's arming state after the outage
+            await link.wait_until(lambda: link.mode_reports > n0, lc.mode_timeout,
+                                  "no heartbeat from the autopilot after the fault")
+        except Exception as e:
+            await link.close()
+            self.sm.go(State.SAFE_FAILSAFE_LINK, (
+                f"{d}; link not back ({e}): an arm command was sent, PX4's arming state is unknown (last reported "
+                f"armed {link.armed}); an armed vehicle left on the ground is disarmed by PX4 after "
+                "COM_DISARM_PRFLT"), r)
+            return
+        if link.armed is not True:
+            self.sm.go(State.ABORT_NOT_ARMED, d + "; PX4 reports not armed", r)
+            return
+        if link.landed_state not in ("ON_GROUND", "UNKNOWN", None):
+            self._go_seen(d + "; the vehicle is armed", r)
+            return
+        try:
+            # PX4's auto-disarm first (1 s), else our disarm command; confirmed by telemetry.
+            await link.wait_landed_and_disarm(timeout=lc.command_timeout)
+        except Exception as e:
+            await link.close()
+            self._go_seen(f"{d}; PX4 armed on the ground after all and our disarm failed ({e}): the vehicle is "
+                          "ARMED; PX4 disarms it by itself after COM_DISARM_PRFLT", r)
+            return
+        self.sm.go(State.SAFE_LANDED, f"{d}; PX4 armed on the ground after all (the arm command got through); "
+                   "disarmed by the app: PX4 reports disarmed, on the ground", r)
+
     def _go_seen(self, detail: str, reason: Reason) -> None:
         """The terminal state that names what the autopilot last reported."""
         link = self.link
@@ -108,14 +152,8 @@ class SafeEnds:
         with contextlib.suppress(Exception):
             await asyncio.wait_for(self.link.close(), 10.0)
         detail = f"{fault.detail}; safe end failed ({type(err).__name__}: {err}): streaming stopped"
-        if self.sm.done:
-            return
-        if self.sm.state in GROUND_STATES and self.link.armed is not True:
-            self.sm.go(State.ABORT_NOT_ARMED, detail, fault.reason)
-        elif self.sm.state in GROUND_STATES:
-            self._go_seen(detail, fault.reason)
-        else:
-            self.sm.go(State.SAFE_FAILSAFE_LINK, detail, fault.reason)
+        if not self.sm.done:
+            name_last_resort(self.sm, self.link, detail, fault.reason)
 
     def _classify(self, e: BaseException) -> Abort:
         text = f"{type(e).__name__}: {e}"
@@ -138,3 +176,24 @@ class SafeEnds:
         if isinstance(e, TimeoutError):
             return Abort(Reason.COMMAND_TIMEOUT, text)
         return Abort(Reason.EXCEPTION, text)
+
+
+def name_last_resort(sm: StateMachine, link: Any, detail: str, reason: Reason) -> None:
+    """The safe end itself failed (or an exception escaped the machine): name the first state that the state
+    machine accepts as true of the vehicle, from the most to the least specific."""
+    from companion.app.states import IllegalTransition
+
+    if sm.state in GROUND_STATES:
+        armed = link.armed
+        cands = [State.ABORT_NOT_ARMED] if armed is not True else []
+        cands += [State.SAFE_FAILSAFE_LINK, State.SAFE_HOLD, State.AUTOPILOT]
+        if armed is True:
+            detail += f"; the vehicle is ARMED (mode {link.flight_mode}); PX4 disarms it on the ground after " \
+                      "COM_DISARM_PRFLT"
+    else:
+        cands = [State.SAFE_FAILSAFE_LINK]
+    for dst in cands:
+        if dst in TRANSITIONS[sm.state]:
+            with contextlib.suppress(IllegalTransition):
+                sm.go(dst, detail, reason)
+                return

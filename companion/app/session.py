@@ -162,16 +162,17 @@ async def _escaped(app: FlightApp, link: Any, err: Exception, stderr: Any) -> tu
     commanded it) and the state named is the one that is true then: not armed on the ground,
     PX4's own failsafe in the air.
     """
-    from companion.app.states import GROUND_STATES, Reason, State
+    from companion.app.states import Reason
 
     detail = f"{type(err).__name__}: {err}"
     print(f"companion: flight logic failed: {detail}", file=stderr, flush=True)
     if not app.sm.done:
         with contextlib.suppress(Exception):
             await asyncio.wait_for(link.close(), 10.0)
-        dst = State.ABORT_NOT_ARMED if app.sm.state in GROUND_STATES else State.SAFE_FAILSAFE_LINK
+        from companion.app.safeend import name_last_resort
+
         with contextlib.suppress(Exception):
-            app.sm.go(dst, f"{detail}; streaming stopped", Reason.EXCEPTION)
+            name_last_resort(app.sm, link, f"{detail}; streaming stopped", Reason.EXCEPTION)
     summary = app.summary()
     summary.setdefault("error", detail)
     reason = app.sm.outcome if app.sm.outcome is not None else Reason.EXCEPTION
