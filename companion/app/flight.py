@@ -123,6 +123,8 @@ class FlightApp(Monitors, SafeEnds):
         self._last_out: ControlOutput | None = None
         self._deadman: LoopDeadman | None = None
         self._hover_logged: float | None = None
+        self._failsafe_values: dict[str, float | None] = {}
+        self._px4_failsafe: str | None = None  # PX4's offboard-loss failsafe took the vehicle (not a pilot): why
 
     # ------------------------------------------------------------------------------ public
     def trip(self, reason: Reason, detail: str) -> None:
@@ -275,6 +277,7 @@ class FlightApp(Monitors, SafeEnds):
         from companion.app.failsafe import judge
 
         values = await self.link.failsafe_params(timeout=min(self.cfg.link.command_timeout, 3.0))
+        self._failsafe_values = values  # also tells PX4's offboard-loss failsafe from a pilot (monitors.py)
         self._check_fault()
         line, problems = judge(values, self.cfg.safety.max_offboard_loss_time)
         self.log.event(line, "warn" if problems else "info")

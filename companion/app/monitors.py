@@ -22,6 +22,11 @@ if TYPE_CHECKING:
     from companion.flightlog import FlightLog
 
 
+# s a gap in the link or in our loop is remembered: PX4's heartbeat (1 Hz) shows its failsafe mode up to 1 s after the
+# failsafe, which acts COM_OF_LOSS_T after the gap began.
+GAP_MEMORY_S = 5.0
+
+
 class Monitors:
     """The monitor half of ``FlightApp`` (a mixin: it works on the app's state machine, link, log and config)."""
 
@@ -51,6 +56,8 @@ class Monitors:
             self.log.event(f"PX4 {level}: {detail.get('text')}", "warn" if severe else "info")
             if severe and self.stderr is not None:
                 print(f"companion: PX4 {level}: {detail.get('text')}", file=self.stderr, flush=True)
+            if str(detail.get("name", "")).startswith("commander_failsafe"):
+                self._px4_failsafe_said = str(detail.get("text"))  # PX4's own word that a failsafe acted
             return
         self.log.event(f"link {kind} {detail}" if detail else f"link {kind}", "warn" if kind in (
             "watchdog", "loop_guard", "loop_guard_stop", "offboard_lost", "link_lost", "close_leaked",
@@ -59,8 +66,8 @@ class Monitors:
             self.trip(Reason.PERCEPTION_STALL, f"link watchdog: no fresh setpoint for {detail.get('age', 0):.2f} s")
         elif kind == "offboard_lost":  # PX4 left OFFBOARD by itself: the pilot or a PX4 failsafe has it
             mode = str(detail.get("mode"))
-            self.trip(Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE,
-                      f"vehicle left OFFBOARD for {mode}")
+            who, why = self._who_changed_mode(mode)
+            self.trip(who, f"vehicle left OFFBOARD for {mode}" + (f": {why}" if why else ""))
         elif kind == "link_lost":
             self.trip(Reason.LINK_LOST, f"no telemetry for {detail.get('age', 0):.1f} s")
         elif kind == "telemetry_invalid":
@@ -77,6 +84,7 @@ class Monitors:
         """
         while not self.sm.done:
             await asyncio.sleep(0.05)
+            self._note_gap()
             if not self._connected:
                 continue
             self._log_telemetry()
@@ -111,8 +119,40 @@ class Monitors:
             return  # PX4 is switching to OFFBOARD (the frame loop runs on); a refusal ends the start with its error
         if st.offboard and link.offboard_active:
             return  # the link's own offboard watchdog reports it (offboard_lost) and stops commanding first
-        who = Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE
-        self.trip(who, f"flight mode changed to {mode} during {st.value}")
+        who, why = self._who_changed_mode(mode) if st.offboard else (
+            Reason.PILOT_TAKEOVER if mode in PILOT_MODES else Reason.AUTOPILOT_MODE, "")
+        self.trip(who, f"flight mode changed to {mode} during {st.value}" + (f": {why}" if why else ""))
+
+    def _who_changed_mode(self, mode: str) -> tuple[Reason, str]:
+        """A mode we did not command while we flew offboard: the pilot's, or PX4's offboard-loss failsafe after a
+        gap in our setpoints (a link drop, our own loop stalled) or PX4's failsafe event. The failsafe's mode may be
+        a pilot mode (Position) with no pilot at all; naming it "pilot" would tell the operator someone flies."""
+        from companion.app.failsafe import offboard_loss_explains
+
+        if mode not in PILOT_MODES:
+            return Reason.AUTOPILOT_MODE, ""
+        why = offboard_loss_explains(mode, self._recent_gap(), getattr(self, "_failsafe_values", {}),
+                                     getattr(self, "_px4_failsafe_said", None))
+        if why is None:
+            return Reason.PILOT_TAKEOVER, ""
+        self._px4_failsafe = why
+        return Reason.AUTOPILOT_MODE, why
+
+    def _note_gap(self) -> None:
+        """One monitor tick: remember gaps in telemetry (the link) and in our own loop (nothing sent meanwhile)."""
+        now = self.clock()
+        last = getattr(self, "_last_tick", None)
+        self._last_tick = now
+        gap = max(self.link.telemetry_age if self._connected else 0.0, (now - last - 0.05) if last else 0.0)
+        if gap > 0.3:
+            self._gaps = [(t, g) for t, g in getattr(self, "_gaps", []) if now - t < GAP_MEMORY_S] + [(now, gap)]
+
+    def _recent_gap(self) -> float:
+        """The longest gap of the last GAP_MEMORY_S, counting a loop stall still under way (now)."""
+        now = self.clock()
+        last = getattr(self, "_last_tick", None)
+        gaps = [g for t, g in getattr(self, "_gaps", []) if now - t < GAP_MEMORY_S]
+        return max([*gaps, (now - last - 0.05) if last else 0.0, 0.0])
 
     async def _watchdog(self) -> None:
         """No fresh setpoint while we own the vehicle -> hand over (MAVSDK keeps resending the old one)."""

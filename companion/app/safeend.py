@@ -141,7 +141,7 @@ class SafeEnds:
             self.sm.go(State.DISARMED, f"{detail}; vehicle disarmed in the air (landed state {landed})", reason)
         elif mode == "HOLD":
             self.sm.go(State.SAFE_HOLD, f"{detail}; PX4 holds", reason)
-        elif mode in PILOT_MODES:
+        elif mode in PILOT_MODES and not getattr(self, "_px4_failsafe", None):
             self.sm.go(State.SAFE_PILOT, f"{detail}; the pilot has the vehicle in {mode}", reason)
         else:
             self.sm.go(State.AUTOPILOT, f"{detail}; PX4 flies in {mode} (armed {armed}, landed state {landed})",

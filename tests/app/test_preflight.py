@@ -118,3 +118,6 @@ def test_camera_error_in_preflight_refuses_to_arm(sim, tmp_path, size):
     assert summary["outcome"] == "ABORT_NOT_ARMED" and summary["states"][-2:] == ["PREFLIGHT", "ABORT_NOT_ARMED"]
     assert "refusing to arm" in summary["detail"] and f"{size[1]}x{size[0]}" in summary["detail"], summary
     assert not sim.armed and not any(e == "arm" for _, e in sim.events)
+    f = read_flight(folder)  # the log says the same, nothing lost
+    assert f.state_path()[-1] == "ABORT_NOT_ARMED" and f.summary["exit_code"] == 24
+    assert all(t.truncated_rows == 0 for t in f.tables.values())

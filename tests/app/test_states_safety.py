@@ -245,3 +245,22 @@ def test_the_machine_refuses_a_terminal_state_the_vehicle_contradicts():
     sm2.go(State.PREFLIGHT, "p")
     sm2.go(State.ABORT_NOT_ARMED, "lost", Reason.LINK_LOST)
     assert sm2.state is State.ABORT_NOT_ARMED
+
+
+def test_offboard_loss_failsafe_is_told_apart_from_a_pilot():
+    from companion.app.failsafe import offboard_loss_explains
+
+    px4 = {"COM_OF_LOSS_T": 1.0, "COM_OBL_RC_ACT": 0.0}
+    # A gap of our setpoints >= COM_OF_LOSS_T and the mode COM_OBL_RC_ACT selects: PX4's failsafe.
+    why = offboard_loss_explains("POSCTL", 1.2, px4)
+    assert why is not None and "COM_OF_LOSS_T = 1 s" in why and "not a pilot" in why
+    # No gap (or a shorter one): the pilot's switch.
+    assert offboard_loss_explains("POSCTL", 0.0, px4) is None
+    assert offboard_loss_explains("POSCTL", 0.9, px4) is None
+    # A gap, but a mode the failsafe would not select (Altitude, with action Position): the pilot's.
+    assert offboard_loss_explains("ALTCTL", 2.0, px4) is None
+    # PX4 said so (its failsafe event), whatever the gap.
+    said = offboard_loss_explains("POSCTL", 0.0, px4, "Failsafe activated: switching to Position mode")
+    assert said is not None and "Failsafe activated" in said
+    # Parameters unread: PX4's default loss time (1 s), any manual mode.
+    assert offboard_loss_explains("POSCTL", 1.5, {}) is not None

@@ -74,3 +74,31 @@ def test_link_outage_in_preflight_ends_not_armed_without_an_illegal_transition(s
     assert last["to_state"] == "ABORT_NOT_ARMED" and f.state_path()[-2:] == ["PREFLIGHT", "ABORT_NOT_ARMED"]
     st = simproc.state()
     assert st["armed"] == "0" and "arm" not in simproc.events(), st
+
+
+def test_short_link_drop_in_engage_is_px4s_failsafe_not_a_pilot(sim, tmp_path):
+    """Issue #22: a 1.2 s drop (> COM_OF_LOSS_T 1 s, < link_lost_timeout 1.5 s) in ENGAGE: PX4's offboard-loss
+    failsafe switched to Position mode and the app named ``SAFE_PILOT ... the pilot has the vehicle in POSCTL``
+    (exit 15), with no pilot anywhere."""
+    import asyncio
+
+    from flighthelpers import wait_state
+
+    async def side(app) -> None:
+        await wait_state(app, "ENGAGE")
+        await asyncio.sleep(1.0)
+        sim.drop_link(True)
+        await asyncio.sleep(1.2)
+        sim.drop_link(False)
+
+    reason, folder, summary = run_flight(make_config(tmp_path, sim.url_for_mavsdk), side)
+    f = read_flight(folder)
+    last = f.states[-1]
+    ev = [e for _, e in sim.events]
+    assert "failsafe:offboard_loss" in ev and "mode:POSCTL:failsafe" in ev, ev  # PX4's failsafe, truly
+    assert not any(e.endswith(":pilot") for e in ev)  # and no pilot
+    assert reason is Reason.AUTOPILOT_MODE and summary["exit_code"] == 33, (summary, last)
+    assert last["to_state"] == "AUTOPILOT" and "pilot" not in last["reason"].split(";")[-1], last
+    assert "offboard-loss failsafe" in last["reason"] and "POSCTL" in last["reason"], last
+    assert sim.mode == "POSCTL" and sim.armed  # what the app named is what the vehicle does
+    assert all(t.truncated_rows == 0 for t in f.tables.values())
