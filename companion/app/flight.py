@@ -217,6 +217,7 @@ class FlightApp(Monitors, SafeEnds):
     # ------------------------------------------------------------------------------ sequence
     async def _sequence(self) -> None:
         cfg = self.cfg
+        self._check_fault()  # a signal during set-up: nothing connected, nothing commanded
         self.sm.go(State.CONNECT, f"connecting to {cfg.link.url}")
         await self.link.connect()
         self._connected = True

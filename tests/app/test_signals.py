@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -244,3 +245,68 @@ def test_companion_sim_binds_only_localhost(tmp_path):
     assert app_socks and sim_socks, (app_socks, sim_socks)
     for s in app_socks + sim_socks:
         assert s.startswith("127.0.0.1:"), (app_socks, sim_socks)
+
+
+@pytest.mark.parametrize("second", [signal.SIGTERM, signal.SIGINT])
+def test_a_second_signal_during_the_safe_end_changes_nothing(sim, tmp_path, second):
+    """Issue #22: a second SIGTERM 0.15 s after the first (double Ctrl-C, a stop script) killed the process
+    (exit -15, summary.json "running"); SIGTERM then SIGINT: exit -2. Now the first one's safe end stands."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
+    try:
+        folder = _wait_engaged(proc, logdir)
+        time.sleep(0.7)
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.15)
+        if proc.poll() is None:
+            proc.send_signal(second)
+        for _ in range(20):  # and more, through the whole teardown, until the process is gone
+            if proc.poll() is not None:
+                break
+            time.sleep(0.1)
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(second)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == Reason.SIGNAL.value, err[-2000:]
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-2000:]
+    f = read_flight(folder)
+    assert f.summary["outcome"] == "SAFE_HOLD" and f.summary["reason"] == "SIGNAL", f.summary
+    assert "SIGTERM" in f.states[-1]["reason"]
+    assert sim.mode == "HOLD" and sim.armed
+    assert all(t.truncated_rows == 0 for t in f.tables.values())
+
+
+def _loading_app_modules(pid: int) -> bool:
+    """The process has started importing the app (pydantic's compiled core is mapped): past Python's own start."""
+    try:
+        return "pydantic_core" in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("when", ["loading", "set-up"])
+def test_sigint_while_starting_is_one_line_not_a_traceback(sim, tmp_path, when):
+    """Issue #22: SIGINT in the first 0.3 s (the app's modules still loading) gave a KeyboardInterrupt traceback.
+    Before the flight: one line, a defined exit code, nothing armed. (Python's own start-up, before any of the
+    app's code runs, is not the app's to handle.)"""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
+    try:
+        deadline = time.monotonic() + 30
+        ready = (lambda: _loading_app_modules(proc.pid)) if when == "loading" else (
+            lambda: any(logdir.glob("*/meta.json")))
+        while not ready() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.002)
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-2000:]
+    assert rc in (130, Reason.SIGNAL.value), (rc, err[-2000:])
+    last = [ln for ln in err.splitlines() if ln.startswith("companion: ")][-1:]
+    assert last and ("interrupted" in last[0] or "SIGINT" in last[0] or "flight log" in last[0]), err[-2000:]
+    assert not sim.armed
+    for summary in logdir.glob("*/summary.json"):  # a flight folder, if one was made, is closed
+        assert '"running"' not in summary.read_text()
