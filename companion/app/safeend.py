@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from companion.app import linkerrors as linkmod
 from companion.app.camera import CameraFailed
+from companion.app.offboard import STALE_DRAIN_S
 from companion.app.states import GROUND_STATES, PILOT_MODES, TRANSITIONS, Reason, State
 from companion.limits import Abort
 
@@ -29,6 +30,8 @@ class SafeEnds:
     link: Any
     sm: StateMachine
     _last_setpoint: float
+    _recent_stall: Any  # Monitors (the other mixin)
+    _who_changed_mode: Any
 
     async def _safe_end(self, fault: Abort) -> None:
         """Bring the vehicle to one named state that is TRUE of it: HOLD only when PX4 reports HOLD, landed
@@ -52,6 +55,8 @@ class SafeEnds:
             self._go_seen(d + "; we stopped commanding", r)
             return
         pilot_start = self.cfg.app.start == "pilot"
+        if st.offboard and await self._taken_while_we_stalled(d):
+            return
         if st.offboard:
             self.sm.go(State.HANDBACK, d)
             try:
@@ -64,6 +69,8 @@ class SafeEnds:
             st = State.HANDBACK
         elif st in (State.TAKEOFF, State.LAND) or (st is State.ACQUIRE and not pilot_start):
             # PX4 is flying its own take-off, landing or hold for us: command Hold and see it confirmed.
+            with contextlib.suppress(Exception):  # after the app itself stalled, telemetry takes a moment to flow
+                await self.link.wait_link_ok(self.cfg.link.link_lost_timeout)
             try:
                 await self.link.hold()
             except Exception as e:
@@ -83,6 +90,28 @@ class SafeEnds:
             self._go_seen(d, r)
             return
         self._go_seen(d, r)
+
+    async def _taken_while_we_stalled(self, d: str) -> bool:
+        """The app did not run for a while (a stopped process, a stalled loop) just before this fault: PX4's
+        offboard-loss failsafe may have the vehicle. Read a fresh heartbeat before commanding anything: a mode
+        other than OFFBOARD is named (PX4's failsafe or a pilot) and left alone (True); else False (hand over)."""
+        stall = self._recent_stall()
+        if stall <= self.cfg.safety.perception_stall_timeout:
+            return False
+        link, lc = self.link, self.cfg.link
+        with contextlib.suppress(Exception):
+            await link.wait_link_ok(lc.link_lost_timeout)
+            await asyncio.sleep(STALE_DRAIN_S)  # datagrams queued while we did not run are old news
+            n0 = link.mode_reports
+            await link.wait_until(lambda: link.mode_reports > n0, lc.mode_timeout, "a heartbeat after the stall")
+        mode = link.flight_mode
+        if mode == "OFFBOARD" or mode is None:
+            return False
+        who, why = self._who_changed_mode(str(mode))
+        await link.close()
+        self._go_seen(f"the app did not run for {stall:.1f} s ({d}); the vehicle is in {mode}"
+                      + (f": {why}" if why else ""), who)
+        return True
 
     async def _ground_end(self, d: str, r: Reason) -> None:
         """A fault before take-off. "Not armed" only when live telemetry shows it: an ARM command sent into a

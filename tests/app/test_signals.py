@@ -310,3 +310,62 @@ def test_sigint_while_starting_is_one_line_not_a_traceback(sim, tmp_path, when):
     assert not sim.armed
     for summary in logdir.glob("*/summary.json"):  # a flight folder, if one was made, is closed
         assert '"running"' not in summary.read_text()
+
+
+def _freeze(proc: subprocess.Popen, seconds: float) -> None:
+    """The app stopped as a whole (SIGSTOP: every thread, MAVSDK's too), then resumed."""
+    os.kill(proc.pid, signal.SIGSTOP)
+    time.sleep(seconds)
+    os.kill(proc.pid, signal.SIGCONT)
+
+
+def test_app_frozen_in_engage_names_px4s_failsafe_and_never_holds_over_it(sim, tmp_path):
+    """Issue #22: frozen 3 s in ENGAGE, the app commanded Hold over PX4's failsafe descent on resume, then its
+    deadman killed it (exit -9, summary "running") saying "PX4's offboard-loss failsafe takes over" while PX4
+    held at 7 m. Now: what PX4 does is read from a fresh heartbeat first; its failsafe is named; summary final."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
+    try:
+        folder = _wait_engaged(proc, logdir)
+        deadline = time.monotonic() + 10.0  # the app has seen PX4 in OFFBOARD (its switch is done)
+        while "'new': 'OFFBOARD'" not in (folder / "events.csv").read_text() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        _freeze(proc, 3.0)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    ev = [e for _, e in sim.events]
+    assert "failsafe:offboard_loss" in ev and "mode:POSCTL:failsafe" in ev, ev  # PX4's failsafe acted, truly
+    assert rc == Reason.AUTOPILOT_MODE.value, (rc, err[-3000:])
+    f = read_flight(folder)
+    assert f.summary["outcome"] == "AUTOPILOT" and f.summary["exit_code"] == 33, f.summary
+    last = f.states[-1]["reason"]
+    assert "offboard-loss failsafe" in last and "did not run" in last and "POSCTL" in last, last
+    assert "event loop stalled" not in err  # no kill
+    # No Hold of ours over the failsafe: PX4 still flies its failsafe (descending in Position mode).
+    assert "mode:HOLD:command" not in ev[ev.index("mode:POSCTL:failsafe"):], ev
+    assert sim.mode == "POSCTL"
+    assert all(t.truncated_rows == 0 for t in f.tables.values())
+
+
+def test_app_frozen_in_takeoff_is_an_app_stall_not_a_link_loss(sim, tmp_path):
+    """Issue #22: frozen 3 s in TAKEOFF (or 1.5 s in ACQUIRE) ended as SAFE_FAILSAFE_LINK "no telemetry",
+    though the link was fine: the app had stalled."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk, extra=("app.takeoff_altitude=10",))
+    try:
+        folder = _wait_state_file(proc, logdir, "TAKEOFF")
+        time.sleep(0.3)
+        _freeze(proc, 3.0)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == Reason.PERCEPTION_STALL.value, (rc, err[-3000:])
+    f = read_flight(folder)
+    assert f.state_path()[-2:] == ["TAKEOFF", "SAFE_HOLD"], f.state_path()
+    last = f.states[-1]["reason"]
+    assert "the app stalled" in last and "no telemetry" not in last and "PX4 holds" in last, last
+    assert not any(e == "link:dropped" for _, e in sim.events)  # the link was never down
+    assert sim.mode == "HOLD" and sim.armed
+    assert all(t.truncated_rows == 0 for t in f.tables.values())
