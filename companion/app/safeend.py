@@ -197,6 +197,12 @@ class SafeEnds:
         for name, reason in table:
             exc = getattr(linkmod, name, None)
             if isinstance(exc, type) and isinstance(e, exc):
+                stall = self._recent_stall()
+                if reason is Reason.LINK_LOST and stall > 0.3 and (self.link.link_ok
+                                                                   or stall >= self.link.telemetry_age - 0.5):
+                    # The telemetry was old because the app did not run (a stopped process), not the link.
+                    return Abort(Reason.PERCEPTION_STALL, f"the app stalled: it did not run for {stall:.1f} s "
+                                 f"({text}: the app's own pause, not a link loss)")
                 return Abort(reason, text)
         if isinstance(e, CameraFailed):
             return Abort(Reason.CAMERA_FAILED, text)
