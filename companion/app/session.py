@@ -80,7 +80,9 @@ class _SignalGuard:
     action, i.e. death, when removed) so the caller's handlers come back only after the log is closed.
     """
 
-    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+    # SIGABRT: what systemd's watchdog (WatchdogSec) sends when WATCHDOG=1 stopped; a loop that runs again
+    # ends like a SIGTERM, with the watchdog named in the log and summary.json final.
+    SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGABRT)
 
     def __init__(self, loop: asyncio.AbstractEventLoop, stderr: Any) -> None:
         self.loop, self.stderr = loop, stderr
@@ -93,6 +95,8 @@ class _SignalGuard:
         from companion.app.states import Reason
 
         name = signal.Signals(signum).name
+        if signum == signal.SIGABRT:
+            name = "SIGABRT (systemd's watchdog: the event loop missed WatchdogSec)"
         app = self.app
         if app is None:
             self.pending = self.pending or name  # before the state machine: it starts with this fault

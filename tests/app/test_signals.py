@@ -369,3 +369,22 @@ def test_app_frozen_in_takeoff_is_an_app_stall_not_a_link_loss(sim, tmp_path):
     assert not any(e == "link:dropped" for _, e in sim.events)  # the link was never down
     assert sim.mode == "HOLD" and sim.armed
     assert all(t.truncated_rows == 0 for t in f.tables.values())
+
+
+def test_watchdog_sigabrt_is_recorded_and_the_summary_is_final(sim, tmp_path):
+    """Issue #22: systemd's watchdog SIGABRT left summary.json "running" with no record that it fired."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk, extra=("app.takeoff_altitude=8",))
+    try:
+        folder = _wait_state_file(proc, logdir, "TAKEOFF")
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGABRT)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == Reason.SIGNAL.value, (rc, err[-2000:])
+    f = read_flight(folder)
+    assert f.summary["reason"] == "SIGNAL" and f.summary["outcome"] == "SAFE_HOLD", f.summary
+    assert "SIGABRT" in f.states[-1]["reason"] and "watchdog" in f.states[-1]["reason"]
+    assert any("SIGABRT" in str(t) for t in f["events"]["text"])
+    assert sim.mode == "HOLD" and sim.armed
