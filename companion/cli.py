@@ -6,8 +6,6 @@ import argparse
 import importlib
 import sys
 
-from companion.configbase import ConfigError
-
 # Each module has ``register(subparsers)`` that adds its sub-command(s) and sets ``func``.
 COMMAND_MODULES = (
     "companion.bench",
@@ -39,12 +37,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except ConfigError as e:
-        print(f"companion: config error: {e}", file=sys.stderr)
-        return 2
+    try:  # Ctrl-C while the modules still load (the first ~0.3 s) is one line too, never a traceback
+        from companion.configbase import ConfigError
+
+        args = build_parser().parse_args(argv)
+        try:
+            return int(args.func(args) or 0)
+        except ConfigError as e:
+            print(f"companion: config error: {e}", file=sys.stderr)
+            return 2
     except KeyboardInterrupt:
         print("companion: interrupted", file=sys.stderr)
         return 130

@@ -44,11 +44,19 @@ class LoopDeadman:
         self._thread.join(timeout=2.0)
 
     def _run(self) -> None:
+        last = time.monotonic()
         while not self._stop.wait(self.timeout / 4):
-            age = time.monotonic() - self._beat
+            now = time.monotonic()
+            if now - last > self.timeout / 2:
+                # This thread did not run either: the whole process was stopped (SIGSTOP, a paused VM), not only
+                # the loop. Its loop gets the full timeout from now to notice what PX4 did meanwhile.
+                self._beat = now
+            last = now
+            age = now - self._beat
             if age > self.timeout and self.engaged():
-                msg = (f"companion: event loop stalled for {age:.1f} s while commanding the vehicle: "
-                       "killing the process so PX4's offboard-loss failsafe takes over\n")
+                msg = (f"companion: event loop stalled for {age:.1f} s while commanding the vehicle: killing the "
+                       "process (MAVSDK's setpoint resends end with it: PX4's offboard-loss failsafe acts if it is "
+                       "still in OFFBOARD)\n")
                 os.write(2, msg.encode())
                 if self.last_words is not None:
                     with contextlib.suppress(Exception):  # nothing may stop the kill

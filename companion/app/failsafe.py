@@ -75,3 +75,33 @@ def judge(values: Mapping[str, float | None], max_loss_time: float) -> tuple[str
 
 def _fmt(v: float | None) -> str:
     return "?" if v is None else f"{v:g}"
+
+
+# The mode PX4's heartbeat shows for each offboard-loss action (mavsdk FlightMode names).
+OBL_MODES = {0: "POSCTL", 1: "ALTCTL", 2: "MANUAL", 3: "RETURN_TO_LAUNCH", 4: "LAND", 5: "HOLD"}
+DEFAULT_OF_LOSS_T = 1.0  # s, PX4 v1.15's default, when the parameter could not be read
+
+
+def offboard_loss_explains(mode: str, gap_s: float, values: Mapping[str, float | None],
+                           px4_failsafe: str | None = None) -> str | None:
+    """Why leaving OFFBOARD for ``mode`` was PX4's own offboard-loss failsafe, not a pilot (None: no evidence).
+
+    Evidence: PX4 said so (its failsafe event, ``px4_failsafe``: the text), or our setpoints stopped for at least
+    COM_OF_LOSS_T (``gap_s``: the longest recent gap in the link or in our own loop) and the mode is the one
+    COM_OBL_RC_ACT selects. A pilot flipping a switch after a short gap is possible, but without manual control
+    PX4 descends and lands in that mode either way: the line names what PX4 does, which holds in both cases.
+    """
+    t = values.get("COM_OF_LOSS_T")
+    t = DEFAULT_OF_LOSS_T if t is None or not math.isfinite(t) else float(t)
+    act = values.get("COM_OBL_RC_ACT")
+    act_i = None if act is None or not math.isfinite(act) else int(act)
+    action = (f"COM_OBL_RC_ACT = {act_i} ({_name(OBL_ACTIONS, act)})" if act_i is not None
+              else "its offboard-loss action")
+    fallback = ("; with no manual control PX4 descends and lands" if act_i in (0, 1, 2) or act_i is None else "")
+    if px4_failsafe:
+        return f"PX4's offboard-loss failsafe ({px4_failsafe}): {action}, not a pilot{fallback}"
+    expected = OBL_MODES.get(act_i) if act_i is not None else None
+    if gap_s >= t and (expected is None or expected == mode):
+        return (f"PX4's offboard-loss failsafe: no setpoints for {gap_s:.1f} s >= COM_OF_LOSS_T = {t:g} s, "
+                f"{action} -> {mode}, not a pilot{fallback}")
+    return None

@@ -34,7 +34,7 @@ from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
 from companion.app.perframe import frame_input, log_step
 from companion.app.safeend import SafeEnds
-from companion.app.states import Reason, State, StateMachine, Transition
+from companion.app.states import Reason, State, StateMachine, Transition, VehicleView
 from companion.confirm import ConfirmParams, OperatorConfirm, engage_mode
 from companion.controller import ControlOutput, PNController
 from companion.core import CoreStep, FlightCore
@@ -111,7 +111,7 @@ class FlightApp(Monitors, SafeEnds):
         # With a live status line, a state message first clears the line it would otherwise append to.
         self._tty = bool(stderr is not None and getattr(stderr, "isatty", lambda: False)())
         sm_err = _ClearLine(stderr) if status_line and self._tty else stderr
-        self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=sm_err)
+        self.sm = StateMachine(clock=log.now, sinks=[self._on_transition], stderr=sm_err, vehicle=self._vehicle_view)
         self.ctrl = PNController.from_config(cfg)
         self.width, self.height = cfg.camera.width, cfg.camera.height
         self.core: FlightCore | None = None  # made when the frame loop starts (the hover thrust is known)
@@ -127,6 +127,8 @@ class FlightApp(Monitors, SafeEnds):
         self._last_out: ControlOutput | None = None
         self._deadman: LoopDeadman | None = None
         self._hover_logged: float | None = None
+        self._failsafe_values: dict[str, float | None] = {}
+        self._px4_failsafe: str | None = None  # PX4's offboard-loss failsafe took the vehicle (not a pilot): why
 
     # ------------------------------------------------------------------------------ public
     def trip(self, reason: Reason, detail: str) -> None:
@@ -219,6 +221,7 @@ class FlightApp(Monitors, SafeEnds):
     # ------------------------------------------------------------------------------ sequence
     async def _sequence(self) -> None:
         cfg = self.cfg
+        self._check_fault()  # a signal during set-up: nothing connected, nothing commanded
         self.sm.go(State.CONNECT, f"connecting to {cfg.link.url}")
         await self.link.connect()
         self._connected = True
@@ -279,6 +282,7 @@ class FlightApp(Monitors, SafeEnds):
         from companion.app.failsafe import judge
 
         values = await self.link.failsafe_params(timeout=min(self.cfg.link.command_timeout, 3.0))
+        self._failsafe_values = values  # also tells PX4's offboard-loss failsafe from a pilot (monitors.py)
         self._check_fault()
         line, problems = judge(values, self.cfg.safety.max_offboard_loss_time)
         self.log.event(line, "warn" if problems else "info")
@@ -496,6 +500,14 @@ class FlightApp(Monitors, SafeEnds):
         if b is None or self._baro0 is None or not math.isfinite(b):
             return None
         return b - self._baro0
+
+    def _vehicle_view(self) -> VehicleView | None:
+        """What PX4 last reported (None before the link connected): the state machine checks terminal claims."""
+        if not self._connected:
+            return None
+        link = self.link
+        return VehicleView(armed=link.armed, mode=link.flight_mode, landed=link.landed_state,
+                           link_ok=bool(link.link_ok))
 
     # ------------------------------------------------------------------------------ logging
     def _on_transition(self, tr: Transition) -> None:

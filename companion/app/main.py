@@ -13,7 +13,9 @@ import argparse
 import asyncio
 import contextlib
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -84,6 +86,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     from companion.config import load_config
     from companion.configbase import ConfigError
 
+    _guard_signals()
     if args.record and is_recording(args.record):
         raise ConfigError(f"--record {args.record}: already holds a recording (index.csv); choose a new folder")
     cfg = load_config(args.config, _overrides(args))
@@ -96,6 +99,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         return exit_when_done(code)
     from companion.app.preflight import stdin_confirm
 
+    _STARTED.set()  # from here fly() owns SIGTERM/SIGINT (companion/app/session.py) until its log is closed
     try:
         reason, folder, _ = run_flight_process(fly(cfg, status_line=args.status, plot=not args.no_plot,
                                                    record=args.record, record_kw=record_kwargs(args),
@@ -103,8 +107,30 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     except StartRefused as e:
         print(f"companion fly: {e}", file=sys.stderr)
         return 2
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        # The flight is over and logged: a late signal must not turn its exit code into -15/-2 while the
+        # interpreter shuts down (which resets Python-level handlers to the default, not SIG_IGN).
+        signal.signal(sig, signal.SIG_IGN)
     print(f"companion: flight log {folder}", file=sys.stderr)
     return exit_when_done(int(reason))
+
+
+_STARTED = threading.Event()
+
+
+def _guard_signals() -> None:
+    """The process's SIGTERM/SIGINT outside fly(): before it, they end the command with one line ("interrupted",
+    exit 130: nothing was commanded); after it (the log is closed, worker threads are joined) they are ignored, so
+    the exit code stays the flight's outcome instead of -15 / a KeyboardInterrupt traceback."""
+
+    def on_signal(signum: int, frame: Any) -> None:
+        if not _STARTED.is_set():
+            raise KeyboardInterrupt
+        with contextlib.suppress(Exception):
+            os.write(2, f"companion: {signal.Signals(signum).name} received after the flight ended: ignored\n".encode())
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, on_signal)
 
 
 def run_flight_process(main: Awaitable[Any], executor_grace: float = 2.0) -> Any:

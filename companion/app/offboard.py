@@ -27,6 +27,10 @@ from companion.app.linkerrors import CommandDenied, LinkError, OffboardDenied, O
 from companion.config_app import LinkConfig
 from companion.vehicle import SetpointLike
 
+# s after the app resumes from a stall during which the datagrams queued in the socket (an old mode, old
+# attitudes) are read: only a heartbeat after that shows what PX4 does now.
+STALE_DRAIN_S = 0.25
+
 
 @dataclass(frozen=True)
 class _Sp:
@@ -176,11 +180,31 @@ class OffboardStreaming:
     async def _watchdog(self) -> None:
         from mavsdk.asyncio.plugins.offboard import OffboardError
 
+        tick = min(0.05, self._setpoint_timeout / 4)
+        last = time.monotonic()
+        resumed: tuple[int, float] | None = None
         while self._offboard_active:
             if self._flight_mode != "OFFBOARD":
                 await self._left_offboard(f"vehicle left OFFBOARD, now {self._flight_mode}")
                 return
-            age = time.monotonic() - self._last_fresh
+            now = time.monotonic()
+            if now - last > self._setpoint_timeout + tick:
+                # We did not run (a stopped process, a stalled loop): PX4's offboard-loss failsafe may have taken
+                # the vehicle meanwhile. A fresh heartbeat first, never a Hold over that failsafe blind.
+                resumed = (-1, now)
+            last = now
+            if resumed is not None:
+                n0, t0 = resumed
+                if now - t0 < STALE_DRAIN_S:  # what waited in the socket meanwhile is old news: let it pass first
+                    await asyncio.sleep(tick)
+                    continue
+                if n0 < 0:
+                    resumed = n0, t0 = (self._mode_reports, t0)
+                if self._mode_reports <= n0 and now - t0 < STALE_DRAIN_S + self.cfg.mode_timeout:
+                    await asyncio.sleep(tick)
+                    continue
+            resumed = None
+            age = now - self._last_fresh
             if age > self._setpoint_timeout:
                 reason = (f"setpoint watchdog: no fresh setpoint for {age:.2f} s "
                           f"(limit {self._setpoint_timeout:.2f} s), handed over to HOLD")
@@ -192,7 +216,7 @@ class OffboardStreaming:
                 except (OffboardError, LinkError) as e:
                     self._emit("watchdog_stop_failed", error=str(e))
                 return
-            await asyncio.sleep(min(0.05, self._setpoint_timeout / 4))
+            await asyncio.sleep(tick)
 
     def _start_loop_guard(self) -> None:
         """Second line behind ``_watchdog``, in a thread: it still works when the event loop itself is stuck.
@@ -209,11 +233,18 @@ class OffboardStreaming:
         limit = 2.0 * self._setpoint_timeout + 0.2
 
         def run() -> None:
+            last = woke = time.monotonic()
             while not stop.wait(0.05):
+                now = time.monotonic()
+                if now - last > limit / 2:
+                    # This thread did not run either: the process was stopped, not only its loop. The loop gets
+                    # the full limit from now to see (a fresh heartbeat) what PX4 did meanwhile.
+                    woke = now
+                last = now
                 if self._offboard_active:
-                    age = time.monotonic() - self._last_fresh
+                    age = now - max(self._last_fresh, woke)
                 elif self._switch_pending:  # no fresh setpoint is due yet: the loop's own beat
-                    age = time.monotonic() - max(self._last_fresh, self._switch_beat)
+                    age = now - max(self._last_fresh, self._switch_beat, woke)
                 else:
                     return
                 if age <= limit:

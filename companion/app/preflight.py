@@ -264,6 +264,16 @@ async def run(app: Any, confirm: Confirm | None) -> str | None:
     for line in text.splitlines()[1:-1]:
         app.log.event("preflight: " + " ".join(line.split()))
     will_arm = app.cfg.app.start == "takeoff"
+    cam_error = s["camera"].get("error")
+    if cam_error:
+        # A camera that fails on the ground fails in the air: never arm (or engage) on it (issue #22: wrong-size
+        # frames showed ERROR here and the app still armed and climbed to 10 m).
+        from companion.app.camera import CameraFailed
+
+        if app.stderr is not None:
+            print(text, file=app.stderr, flush=True)
+        app.log.event(f"preflight: camera ERROR, refusing to arm: {cam_error}", "error")
+        raise CameraFailed(f"pre-flight: camera {app.cfg.perception.source}: {cam_error}: refusing to arm")
     if confirm is None or not will_arm:
         if app.stderr is not None:
             print(text, file=app.stderr, flush=True)

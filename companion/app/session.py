@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import signal
 import sys
 from pathlib import Path
@@ -51,18 +52,78 @@ async def fly(
     """
     from companion.app.vehiclelock import VehicleBusy, VehicleLock
 
-    # One app per vehicle, held until the link is closed (then nothing of ours commands it any more).
-    lock = VehicleLock(cfg.link.url)
+    guard = _SignalGuard(asyncio.get_running_loop(), stderr) if handle_signals else None
     try:
-        lock.acquire()
-    except VehicleBusy as e:
-        raise StartRefused(str(e)) from None
-    try:
-        return await _fly_locked(cfg, status_line=status_line, plot=plot, stderr=stderr,
-                                 handle_signals=handle_signals, alongside=alongside, record=record,
-                                 record_kw=record_kw, confirm=confirm)
+        # One app per vehicle, held until the link is closed (then nothing of ours commands it any more).
+        lock = VehicleLock(cfg.link.url)
+        try:
+            lock.acquire()
+        except VehicleBusy as e:
+            raise StartRefused(str(e)) from None
+        try:
+            return await _fly_locked(cfg, status_line=status_line, plot=plot, stderr=stderr, guard=guard,
+                                     alongside=alongside, record=record, record_kw=record_kw, confirm=confirm)
+        finally:
+            lock.release()
     finally:
-        lock.release()
+        if guard is not None:
+            guard.restore()  # only now: the summary is written, the plot drawn
+
+
+class _SignalGuard:
+    """SIGTERM/SIGINT for one flight, from ``fly``'s first line to its last.
+
+    The first signal trips the state machine (exit 23 after its safe end). One before the state machine exists is
+    kept and trips it at once; later ones (a double Ctrl-C, a stop script that sends two) are logged and ignored:
+    a second signal must not kill the process halfway through the safe end and leave summary.json "running"
+    (issue #22: exit -15 / -2). Python-level handlers (not loop.add_signal_handler, which restores the default
+    action, i.e. death, when removed) so the caller's handlers come back only after the log is closed.
+    """
+
+    # SIGABRT: what systemd's watchdog (WatchdogSec) sends when WATCHDOG=1 stopped; a loop that runs again
+    # ends like a SIGTERM, with the watchdog named in the log and summary.json final.
+    SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGABRT)
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, stderr: Any) -> None:
+        self.loop, self.stderr = loop, stderr
+        self.app: FlightApp | None = None
+        self.log: Any = None
+        self.pending: str | None = None
+        self.old = {sig: signal.signal(sig, self._on_signal) for sig in self.SIGNALS}
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        from companion.app.states import Reason
+
+        name = signal.Signals(signum).name
+        if signum == signal.SIGABRT:
+            name = "SIGABRT (systemd's watchdog: the event loop missed WatchdogSec)"
+        app = self.app
+        if app is None:
+            self.pending = self.pending or name  # before the state machine: it starts with this fault
+        elif not app.sm.done and app._fault is None:
+            self.loop.call_soon_threadsafe(app.trip, Reason.SIGNAL, f"{name} received")
+            return
+        else:
+            with contextlib.suppress(Exception):
+                os.write(2, f"companion: {name} received while the flight ends: ignored (the safe end goes on)\n"
+                         .encode())
+        if self.log is not None:
+            self.loop.call_soon_threadsafe(self._log_late, name)
+
+    def _log_late(self, name: str) -> None:
+        with contextlib.suppress(Exception):
+            self.log.event(f"{name} received while the flight ends: ignored", "warn")
+
+    def attach(self, app: FlightApp) -> None:
+        from companion.app.states import Reason
+
+        self.app = app
+        if self.pending is not None:
+            app.trip(Reason.SIGNAL, f"{self.pending} received during set-up")
+
+    def restore(self) -> None:
+        for sig, old in self.old.items():
+            signal.signal(sig, old)
 
 
 async def _fly_locked(
@@ -71,7 +132,7 @@ async def _fly_locked(
     status_line: bool,
     plot: bool,
     stderr: Any,
-    handle_signals: bool,
+    guard: _SignalGuard | None,
     alongside: Callable[[FlightApp], Awaitable[None]] | None,
     record: str | Path | None,
     record_kw: dict[str, Any] | None,
@@ -91,6 +152,8 @@ async def _fly_locked(
     except FlightLogError as e:
         raise StartRefused(f"cannot start the flight log: {e}") from None
     print(f"companion: logging to {log.folder}", file=stderr, flush=True)
+    if guard is not None:
+        guard.log = log
     notifier = Notifier()
     app: FlightApp | None = None
     link = VehicleLink.from_config(cfg, on_event=lambda kind, detail: app.on_link_event(kind, detail) if app
@@ -112,10 +175,8 @@ async def _fly_locked(
         app = FlightApp(cfg, link, camera, perception, log, notifier=notifier, stderr=stderr,
                         status_line=status_line, perception_in_thread=in_thread, judge=judge,
                         confirm=confirm, truth=truth)
-        loop = asyncio.get_running_loop()
-        if handle_signals:
-            for sig in (signal.SIGTERM, signal.SIGINT):
-                loop.add_signal_handler(sig, app.trip, Reason.SIGNAL, f"{signal.Signals(sig).name} received")
+        if guard is not None:
+            guard.attach(app)
         side = asyncio.create_task(alongside(app)) if alongside is not None else None
         try:
             reason = await app.run()
@@ -134,10 +195,6 @@ async def _fly_locked(
         else:
             reason, summary = await _escaped(app, link, e, stderr)
     finally:
-        if handle_signals:
-            loop = asyncio.get_running_loop()
-            for sig in (signal.SIGTERM, signal.SIGINT):
-                loop.remove_signal_handler(sig)
         with contextlib.suppress(Exception):
             await asyncio.wait_for(link.close(), 10.0)
         if truth is not None:
@@ -162,16 +219,17 @@ async def _escaped(app: FlightApp, link: Any, err: Exception, stderr: Any) -> tu
     commanded it) and the state named is the one that is true then: not armed on the ground,
     PX4's own failsafe in the air.
     """
-    from companion.app.states import GROUND_STATES, Reason, State
+    from companion.app.states import Reason
 
     detail = f"{type(err).__name__}: {err}"
     print(f"companion: flight logic failed: {detail}", file=stderr, flush=True)
     if not app.sm.done:
         with contextlib.suppress(Exception):
             await asyncio.wait_for(link.close(), 10.0)
-        dst = State.ABORT_NOT_ARMED if app.sm.state in GROUND_STATES else State.SAFE_FAILSAFE_LINK
+        from companion.app.safeend import name_last_resort
+
         with contextlib.suppress(Exception):
-            app.sm.go(dst, f"{detail}; streaming stopped", Reason.EXCEPTION)
+            name_last_resort(app.sm, link, f"{detail}; streaming stopped", Reason.EXCEPTION)
     summary = app.summary()
     summary.setdefault("error", detail)
     reason = app.sm.outcome if app.sm.outcome is not None else Reason.EXCEPTION

@@ -92,6 +92,35 @@ TRANSITIONS: dict[State, frozenset[State]] = {
 TRANSITIONS[State.PREFLIGHT] |= {State.REFUSED}
 # Arming can succeed and the take-off then be refused: the vehicle is armed on the ground.
 TRANSITIONS[State.ARM] |= {State.SAFE_LANDED}
+# The link lost after an arm command went out and not back: PX4's arming state is unknown, and "not armed" would
+# be a claim nobody can check (an ARM sent into an outage reaches PX4 when the link returns).
+TRANSITIONS[State.ARM] |= {State.SAFE_FAILSAFE_LINK}
+
+
+@dataclass(frozen=True)
+class VehicleView:
+    """What the autopilot last reported, for checking a terminal state's claim against it."""
+
+    armed: bool | None
+    mode: str | None
+    landed: str | None
+    link_ok: bool
+
+
+def contradiction(dst: State, view: VehicleView, history: list[Transition]) -> str | None:
+    """Why the vehicle's reported state contradicts what ``dst`` claims (None: it does not).
+
+    "Not armed" after an arm command needs a live link that shows disarmed; "landed"/"disarmed" never holds of
+    a vehicle reported armed. The other states name a mode the callers have just seen.
+    """
+    if dst is State.ABORT_NOT_ARMED:
+        if view.armed is True:
+            return "PX4 reports the vehicle armed"
+        if any(h.dst is State.ARM for h in history) and not (view.link_ok and view.armed is False):
+            return "an arm command was sent and no live telemetry shows the vehicle disarmed"
+    if dst in (State.SAFE_LANDED, State.DISARMED) and view.armed is True:
+        return "PX4 reports the vehicle armed"
+    return None
 
 
 class IllegalTransition(RuntimeError):
@@ -116,10 +145,16 @@ class StateMachine:
     state: State = State.INIT
     history: list[Transition] = field(default_factory=list)
     outcome: Reason | None = None
+    # What the autopilot reports now (None: nothing known yet); a terminal state it contradicts is refused.
+    vehicle: Callable[[], VehicleView | None] | None = None
 
     def go(self, dst: State, reason: str, outcome: Reason | None = None) -> Transition:
         if dst not in TRANSITIONS[self.state]:
             raise IllegalTransition(f"state machine: {self.state.value} -> {dst.value} is not allowed ({reason})")
+        view = self.vehicle() if self.vehicle is not None and dst.terminal else None
+        why = contradiction(dst, view, self.history) if view is not None else None
+        if why is not None:
+            raise IllegalTransition(f"state machine: {dst.value} is not true of the vehicle: {why} ({reason})")
         tr = Transition(self.clock(), self.state, dst, reason)
         self.state = dst
         self.history.append(tr)

@@ -98,3 +98,26 @@ def test_summary_measures_a_real_cameras_frame_rate_and_runs_the_detector(sim, t
     boxes = int(cam["detector"].split("gate boxes in ")[1])
     assert boxes >= 0.8 * cam["frames"]  # the detector sees the gate in the frames it was shown
     assert "measured 3" in shown[0] or "measured 2" in shown[0]
+
+
+@pytest.mark.parametrize("size", [(1280, 720), (320, 240)])
+def test_camera_error_in_preflight_refuses_to_arm(sim, tmp_path, size):
+    """Issue #22: frames of the wrong size showed "camera ... ERROR CameraFailed" in the summary, and the app
+    armed and climbed to 10 m anyway. Now: one line, exit 24 CAMERA_FAILED, nothing armed."""
+    import cv2
+    import numpy as np
+
+    video = tmp_path / "cam.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, size)
+    for k in range(240):
+        w.write(np.full((size[1], size[0], 3), (k * 3) % 255, np.uint8))
+    w.release()
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.camera=source", f"perception.source={video}")
+    reason, folder, summary = asyncio.run(asyncio.wait_for(fly(cfg, plot=False, handle_signals=False), 60.0))
+    assert reason is Reason.CAMERA_FAILED and summary["exit_code"] == 24, summary
+    assert summary["outcome"] == "ABORT_NOT_ARMED" and summary["states"][-2:] == ["PREFLIGHT", "ABORT_NOT_ARMED"]
+    assert "refusing to arm" in summary["detail"] and f"{size[1]}x{size[0]}" in summary["detail"], summary
+    assert not sim.armed and not any(e == "arm" for _, e in sim.events)
+    f = read_flight(folder)  # the log says the same, nothing lost
+    assert f.state_path()[-1] == "ABORT_NOT_ARMED" and f.summary["exit_code"] == 24
+    assert all(t.truncated_rows == 0 for t in f.tables.values())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -244,3 +245,146 @@ def test_companion_sim_binds_only_localhost(tmp_path):
     assert app_socks and sim_socks, (app_socks, sim_socks)
     for s in app_socks + sim_socks:
         assert s.startswith("127.0.0.1:"), (app_socks, sim_socks)
+
+
+@pytest.mark.parametrize("second", [signal.SIGTERM, signal.SIGINT])
+def test_a_second_signal_during_the_safe_end_changes_nothing(sim, tmp_path, second):
+    """Issue #22: a second SIGTERM 0.15 s after the first (double Ctrl-C, a stop script) killed the process
+    (exit -15, summary.json "running"); SIGTERM then SIGINT: exit -2. Now the first one's safe end stands."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
+    try:
+        folder = _wait_engaged(proc, logdir)
+        time.sleep(0.7)
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.15)
+        if proc.poll() is None:
+            proc.send_signal(second)
+        for _ in range(20):  # and more, through the whole teardown, until the process is gone
+            if proc.poll() is not None:
+                break
+            time.sleep(0.1)
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(second)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == Reason.SIGNAL.value, err[-2000:]
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-2000:]
+    f = read_flight(folder)
+    assert f.summary["outcome"] == "SAFE_HOLD" and f.summary["reason"] == "SIGNAL", f.summary
+    assert "SIGTERM" in f.states[-1]["reason"]
+    assert sim.mode == "HOLD" and sim.armed
+    assert all(t.truncated_rows == 0 for t in f.tables.values())
+
+
+def _loading_app_modules(pid: int) -> bool:
+    """The process has started importing the app (pydantic's compiled core is mapped): past Python's own start."""
+    try:
+        return "pydantic_core" in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("when", ["loading", "set-up"])
+def test_sigint_while_starting_is_one_line_not_a_traceback(sim, tmp_path, when):
+    """Issue #22: SIGINT in the first 0.3 s (the app's modules still loading) gave a KeyboardInterrupt traceback.
+    Before the flight: one line, a defined exit code, nothing armed. (Python's own start-up, before any of the
+    app's code runs, is not the app's to handle.)"""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
+    try:
+        deadline = time.monotonic() + 30
+        ready = (lambda: _loading_app_modules(proc.pid)) if when == "loading" else (
+            lambda: any(logdir.glob("*/meta.json")))
+        while not ready() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.002)
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-2000:]
+    assert rc in (130, Reason.SIGNAL.value), (rc, err[-2000:])
+    last = [ln for ln in err.splitlines() if ln.startswith("companion: ")][-1:]
+    assert last and ("interrupted" in last[0] or "SIGINT" in last[0] or "flight log" in last[0]), err[-2000:]
+    assert not sim.armed
+    for summary in logdir.glob("*/summary.json"):  # a flight folder, if one was made, is closed
+        assert '"running"' not in summary.read_text()
+
+
+def _freeze(proc: subprocess.Popen, seconds: float) -> None:
+    """The app stopped as a whole (SIGSTOP: every thread, MAVSDK's too), then resumed."""
+    os.kill(proc.pid, signal.SIGSTOP)
+    time.sleep(seconds)
+    os.kill(proc.pid, signal.SIGCONT)
+
+
+def test_app_frozen_in_engage_names_px4s_failsafe_and_never_holds_over_it(sim, tmp_path):
+    """Issue #22: frozen 3 s in ENGAGE, the app commanded Hold over PX4's failsafe descent on resume, then its
+    deadman killed it (exit -9, summary "running") saying "PX4's offboard-loss failsafe takes over" while PX4
+    held at 7 m. Now: what PX4 does is read from a fresh heartbeat first; its failsafe is named; summary final."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
+    try:
+        folder = _wait_engaged(proc, logdir)
+        deadline = time.monotonic() + 10.0  # the app has seen PX4 in OFFBOARD (its switch is done)
+        while "'new': 'OFFBOARD'" not in (folder / "events.csv").read_text() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        _freeze(proc, 3.0)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    ev = [e for _, e in sim.events]
+    assert "failsafe:offboard_loss" in ev and "mode:POSCTL:failsafe" in ev, ev  # PX4's failsafe acted, truly
+    assert rc == Reason.AUTOPILOT_MODE.value, (rc, err[-3000:])
+    f = read_flight(folder)
+    assert f.summary["outcome"] == "AUTOPILOT" and f.summary["exit_code"] == 33, f.summary
+    last = f.states[-1]["reason"]
+    assert "offboard-loss failsafe" in last and "did not run" in last and "POSCTL" in last, last
+    assert "event loop stalled" not in err  # no kill
+    # No Hold of ours over the failsafe: PX4 still flies its failsafe (descending in Position mode).
+    assert "mode:HOLD:command" not in ev[ev.index("mode:POSCTL:failsafe"):], ev
+    assert sim.mode == "POSCTL"
+    assert all(t.truncated_rows == 0 for t in f.tables.values())
+
+
+def test_app_frozen_in_takeoff_is_an_app_stall_not_a_link_loss(sim, tmp_path):
+    """Issue #22: frozen 3 s in TAKEOFF (or 1.5 s in ACQUIRE) ended as SAFE_FAILSAFE_LINK "no telemetry",
+    though the link was fine: the app had stalled."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk, extra=("app.takeoff_altitude=10",))
+    try:
+        folder = _wait_state_file(proc, logdir, "TAKEOFF")
+        time.sleep(0.3)
+        _freeze(proc, 3.0)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == Reason.PERCEPTION_STALL.value, (rc, err[-3000:])
+    f = read_flight(folder)
+    assert f.state_path()[-2:] == ["TAKEOFF", "SAFE_HOLD"], f.state_path()
+    last = f.states[-1]["reason"]
+    assert "the app stalled" in last and "no telemetry" not in last and "PX4 holds" in last, last
+    assert not any(e == "link:dropped" for _, e in sim.events)  # the link was never down
+    assert sim.mode == "HOLD" and sim.armed
+    assert all(t.truncated_rows == 0 for t in f.tables.values())
+
+
+def test_watchdog_sigabrt_is_recorded_and_the_summary_is_final(sim, tmp_path):
+    """Issue #22: systemd's watchdog SIGABRT left summary.json "running" with no record that it fired."""
+    proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk, extra=("app.takeoff_altitude=8",))
+    try:
+        folder = _wait_state_file(proc, logdir, "TAKEOFF")
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGABRT)
+        rc = proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        _reap(proc)
+    assert rc == Reason.SIGNAL.value, (rc, err[-2000:])
+    f = read_flight(folder)
+    assert f.summary["reason"] == "SIGNAL" and f.summary["outcome"] == "SAFE_HOLD", f.summary
+    assert "SIGABRT" in f.states[-1]["reason"] and "watchdog" in f.states[-1]["reason"]
+    assert any("SIGABRT" in str(t) for t in f["events"]["text"])
+    assert sim.mode == "HOLD" and sim.armed

@@ -217,3 +217,50 @@ def test_altitude_floor_looks_ahead_at_the_sink_rate():
     lim = SafetyLimits(SafetyConfig(altitude_floor=2.0, floor_lookahead=0.0))
     trips = [k * dt for k in range(90) if lim.floor(k * dt, 15.0 - 10.0 * k * dt) is not None]
     assert trips and 15.0 - 10.0 * trips[0] < 2.0
+
+
+def test_the_machine_refuses_a_terminal_state_the_vehicle_contradicts():
+    """Issue #22: "ABORT_NOT_ARMED" was named while PX4 was armed. The machine checks every terminal claim
+    against what the autopilot reports."""
+    from companion.app.states import VehicleView
+
+    view = VehicleView(armed=True, mode="HOLD", landed="ON_GROUND", link_ok=True)
+    sm = StateMachine(clock=lambda: 0.0, stderr=None, vehicle=lambda: view)
+    for s in ("CONNECT", "PREFLIGHT", "ARM"):
+        sm.go(State(s), s)
+    for dst in (State.ABORT_NOT_ARMED, State.SAFE_LANDED):
+        with pytest.raises(IllegalTransition, match="not true of the vehicle: PX4 reports the vehicle armed"):
+            sm.go(dst, "claim")
+    # After an arm command, "not armed" needs live telemetry that shows it: a stale "disarmed" is no proof.
+    view = VehicleView(armed=False, mode="HOLD", landed="ON_GROUND", link_ok=False)
+    with pytest.raises(IllegalTransition, match="no live telemetry"):
+        sm.go(State.ABORT_NOT_ARMED, "claim")
+    assert not sm.done
+    # The link lost after an arm command: that state is allowed and true.
+    sm.go(State.SAFE_FAILSAFE_LINK, "link not back", Reason.LINK_LOST)
+    assert sm.outcome is Reason.LINK_LOST
+    # Before any arm command, a disarmed vehicle may end "not armed" even without a live link.
+    sm2 = StateMachine(clock=lambda: 0.0, stderr=None, vehicle=lambda: view)
+    sm2.go(State.CONNECT, "c")
+    sm2.go(State.PREFLIGHT, "p")
+    sm2.go(State.ABORT_NOT_ARMED, "lost", Reason.LINK_LOST)
+    assert sm2.state is State.ABORT_NOT_ARMED
+
+
+def test_offboard_loss_failsafe_is_told_apart_from_a_pilot():
+    from companion.app.failsafe import offboard_loss_explains
+
+    px4 = {"COM_OF_LOSS_T": 1.0, "COM_OBL_RC_ACT": 0.0}
+    # A gap of our setpoints >= COM_OF_LOSS_T and the mode COM_OBL_RC_ACT selects: PX4's failsafe.
+    why = offboard_loss_explains("POSCTL", 1.2, px4)
+    assert why is not None and "COM_OF_LOSS_T = 1 s" in why and "not a pilot" in why
+    # No gap (or a shorter one): the pilot's switch.
+    assert offboard_loss_explains("POSCTL", 0.0, px4) is None
+    assert offboard_loss_explains("POSCTL", 0.9, px4) is None
+    # A gap, but a mode the failsafe would not select (Altitude, with action Position): the pilot's.
+    assert offboard_loss_explains("ALTCTL", 2.0, px4) is None
+    # PX4 said so (its failsafe event), whatever the gap.
+    said = offboard_loss_explains("POSCTL", 0.0, px4, "Failsafe activated: switching to Position mode")
+    assert said is not None and "Failsafe activated" in said
+    # Parameters unread: PX4's default loss time (1 s), any manual mode.
+    assert offboard_loss_explains("POSCTL", 1.5, {}) is not None
