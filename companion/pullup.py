@@ -1,0 +1,201 @@
+"""The pull-up before a target (``app.on_close: pull_up``): when to pull up, and the manoeuvre flown. Pure.
+
+The paper's end-to-end experiment flies at a truck and pulls up right before impact. A pull-up fired on the
+gate pass's time-to-contact (0.25 s) leaves nothing to climb or brake with (0 of 60 cleared), so the decision
+is made from what the vehicle can do:
+
+* **the situation** from the image: the range from the target's configured size and the box
+  (``range = f * size / pixels``, the larger of the width and height estimates: a cut box reads far, which
+  only fires earlier), the closing speed = range / time-to-contact (the box's expansion,
+  companion/limits.py CloseDetector), the height above the target's centre from the filtered LOS, and the
+  climb rate from the barometer (or, without it, the LOS: the vehicle flies along it);
+* **the manoeuvre**: after ``response`` s (attitude and thrust lag, frame latency) at the current velocity,
+  full thrust ``f_max`` tilted back by ``tilt`` (brakes ``f_max sin tilt``, climbs ``f_max cos tilt - g``);
+  closed form for the horizontal gap (when the vehicle is over the target's plane, or how short of it it
+  stops) and the height then. The tilt is the best of a few up to ``app.pull_up_pitch`` (and the envelope);
+* **the decision**: pull up when the best manoeuvre started ``lead`` later (the next frames) would clear the
+  target's top by less than ``app.pull_up_margin``, or when the sink could no longer be arrested above the
+  altitude floor: the planned pull-up is the floor's look-ahead (:func:`arrest_loss`, used by
+  companion/limits.py SafetyLimits.floor), so a target standing on the ground is engaged down to where the
+  pull-up must begin, not forbidden by a 1 s look-ahead at the dive's sink rate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from companion.frames import R_from_euler_ned_deg
+from companion.guidance import Setpoint
+
+if TYPE_CHECKING:
+    from companion.config import Config
+    from perception.types import BoundingBox
+
+G = 9.81
+FLOOR_MARGIN = 0.3  # m kept above the altitude floor by the planned sink arrest (baro noise, model error)
+PERSIST = 2  # frames in a row the decision must say "now": one noisy time-to-contact is not a contact
+
+
+@dataclass(frozen=True, slots=True)
+class PullUpParams:
+    f_max: float  # m/s^2, the largest mass-normalised thrust
+    max_tilt: float  # rad, the largest tilt back (app.pull_up_pitch, within airframe.max_tilt)
+    response: float  # s from the decision until the vehicle accelerates as planned
+    width: float  # m, the target's size
+    height: float
+    margin: float  # m over the target's top
+    fx: float  # px, focal lengths
+    fy: float
+    floor: float  # m, the altitude floor (baro above take-off)
+    frame_dt: float  # s, the camera's frame period
+
+    @classmethod
+    def from_config(cls, cfg: Config, f_max: float | None = None) -> PullUpParams:
+        a = cfg.app
+        r = cfg.guidance.gate_radius
+        w = a.target_width if a.target_width > 0 else 2.0 * r
+        h = a.target_height if a.target_height > 0 else w
+        tilt = math.radians(min(a.pull_up_pitch, cfg.airframe.max_tilt))
+        k = np.asarray(cfg.camera.K, float)
+        return cls(cfg.airframe.f_max if f_max is None else f_max, tilt, a.pull_up_response, w, h,
+                   a.pull_up_margin, float(k[0, 0]), float(k[1, 1]), cfg.safety.altitude_floor,
+                   1.0 / cfg.camera.rate)
+
+    @property
+    def climb_accel(self) -> float:
+        """m/s^2 upwards at full thrust, level."""
+        return self.f_max - G
+
+
+@dataclass(frozen=True, slots=True)
+class Situation:
+    """The geometry relative to the target, from the image (no truth)."""
+
+    ttc: float  # s
+    range: float  # m
+    gap: float  # m, horizontal distance to the target's plane
+    closing: float  # m/s, horizontal closing speed
+    above: float  # m, the vehicle above the target's centre
+    climb_rate: float  # m/s, up positive
+
+
+@dataclass(frozen=True, slots=True)
+class Manoeuvre:
+    tilt: float  # rad back
+    clearance: float  # m: over the top when over the target's plane, or the gap where the vehicle stops short
+    t_over: float  # s from the decision to over the plane (inf: stops short)
+
+
+def situation(box: BoundingBox, ttc: float, los_enu: np.ndarray | None, climb_rate: float | None,
+              p: PullUpParams) -> Situation | None:
+    """The situation, or None when the image cannot tell (no expansion yet, no LOS)."""
+    if not (math.isfinite(ttc) and ttc > 0.0) or los_enu is None or box.w <= 1.0 or box.h <= 1.0:
+        return None
+    rng = max(p.fx * p.width / box.w, p.fy * p.height / box.h)
+    los = np.asarray(los_enu, float) / float(np.linalg.norm(los_enu))
+    horiz = math.sqrt(max(1e-6, 1.0 - los[2] ** 2))
+    gap = rng * horiz
+    vz = climb_rate if climb_rate is not None and math.isfinite(climb_rate) else rng / ttc * float(los[2])
+    return Situation(ttc, rng, gap, gap / ttc, -rng * float(los[2]), vz)
+
+
+def fly(s: Situation, tilt: float, delay: float, p: PullUpParams) -> Manoeuvre:
+    """The planned pull-up started ``delay`` s from now (closed form, point mass, drag ignored: it only helps)."""
+    t0 = delay + p.response
+    ax, az = p.f_max * math.sin(tilt), p.f_max * math.cos(tilt) - G
+    top = 0.5 * p.height
+    if s.gap <= s.closing * t0:  # over the plane before the manoeuvre acts
+        t = s.gap / max(s.closing, 1e-9)
+        return Manoeuvre(tilt, s.above + s.climb_rate * t - top, t)
+    g0 = s.gap - s.closing * t0
+    z0 = s.above + s.climb_rate * t0
+    if ax <= 1e-9:
+        u = g0 / max(s.closing, 1e-9)
+    else:
+        disc = s.closing**2 - 2.0 * ax * g0
+        if disc < 0.0:  # braked to a stop short of the plane: the horizontal gap left is the clearance
+            return Manoeuvre(tilt, g0 - s.closing**2 / (2.0 * ax), math.inf)
+        u = (s.closing - math.sqrt(disc)) / ax
+    return Manoeuvre(tilt, z0 + s.climb_rate * u + 0.5 * az * u * u - top, t0 + u)
+
+
+def best(s: Situation, delay: float, p: PullUpParams, n: int = 6) -> Manoeuvre:
+    """The tilt (0 .. max_tilt, n steps) that clears the top by the most."""
+    tilts = [p.max_tilt * k / (n - 1) for k in range(n)] if n > 1 else [0.0]
+    return max((fly(s, a, delay, p) for a in tilts), key=lambda m: m.clearance)
+
+
+def arrest_loss(climb_rate: float, delay: float, p: PullUpParams) -> float:
+    """Height lost (m, >= 0) before a sink is arrested by a pull-up started ``delay`` s from now at full thrust,
+    level: the floor's look-ahead while a pull-up is planned."""
+    sink = max(0.0, -climb_rate)
+    return sink * (delay + p.response) + sink * sink / (2.0 * max(p.climb_accel, 0.1))
+
+
+@dataclass(frozen=True, slots=True)
+class Fire:
+    why: str
+    tilt: float  # rad back
+    duration: float  # s of full-thrust pull-up
+
+
+class PullUpPlanner:
+    """Per engagement: each frame of ENGAGE, "pull up now?"; then the pull-up's setpoints."""
+
+    def __init__(self, params: PullUpParams) -> None:
+        self.p = params
+        self._count = 0
+        self.last: Manoeuvre | None = None
+        self.fired: Fire | None = None
+        self.t_fire = 0.0
+        self.levelled = False  # the engagement has levelled the vehicle after the flown pull-up
+
+    def reset(self) -> None:
+        self._count = 0
+        self.last = None
+        self.fired = None
+        self.levelled = False
+
+    def decide(self, t: float, box: BoundingBox | None, ttc: float, los_enu: np.ndarray | None,
+               altitude: float | None, climb_rate: float | None) -> Fire | None:
+        """A Fire when the pull-up must start now (for ``PERSIST`` frames in a row), else None."""
+        p = self.p
+        lead = PERSIST * p.frame_dt  # the decision holds from the next frames on: plan as if started then
+        why = ""
+        m: Manoeuvre | None = None
+        s = situation(box, ttc, los_enu, climb_rate, p) if box is not None else None
+        if s is not None:
+            m = best(s, lead, p)
+            self.last = m
+            if m.clearance < p.margin:
+                why = (f"{s.range:.1f} m at {s.closing:.1f} m/s (time-to-contact {ttc:.2f} s): a pull-up later "
+                       f"would clear the top by {m.clearance:.1f} m < {p.margin:.1f} m")
+        if not why and altitude is not None and climb_rate is not None and math.isfinite(altitude):
+            low = altitude - arrest_loss(climb_rate, lead, p)
+            if low < p.floor + FLOOR_MARGIN:
+                why = (f"sinking {-climb_rate:.1f} m/s at {altitude:.1f} m: a pull-up later would bottom out at "
+                       f"{low:.1f} m, floor {p.floor:.1f} m")
+        self._count = self._count + 1 if why else 0
+        if self._count < PERSIST:
+            return None
+        tilt = m.tilt if m is not None else 0.0
+        # Full thrust until over the target (or stopped short) and a little after; never less than the time the
+        # sink takes to be arrested.
+        over = m.t_over if m is not None and math.isfinite(m.t_over) else 0.0
+        arrest = max(0.0, -(climb_rate or 0.0)) / max(p.climb_accel, 0.1) + p.response
+        self.fired = Fire(why, tilt, max(over + 0.3, arrest, 0.5))
+        self.t_fire = t
+        return self.fired
+
+    def setpoint(self, t: float, yaw_deg: float, hover_thrust: float) -> Setpoint | None:
+        """The pull-up's setpoint at t (nose up by the planned tilt, full thrust), None once it is flown."""
+        f = self.fired
+        if f is None or t - self.t_fire > f.duration:
+            return None
+        pitch = math.degrees(f.tilt)
+        thrust = min(1.0, hover_thrust * self.p.f_max / G)
+        return Setpoint(0.0, pitch, yaw_deg, thrust, R_from_euler_ned_deg(0.0, pitch, yaw_deg))
