@@ -52,6 +52,8 @@ class PullUpParams:
     fy: float
     floor: float  # m, the altitude floor (baro above take-off)
     frame_dt: float  # s, the camera's frame period
+    image_w: int = 640  # px
+    image_h: int = 480
 
     @classmethod
     def from_config(cls, cfg: Config, f_max: float | None = None) -> PullUpParams:
@@ -63,7 +65,7 @@ class PullUpParams:
         k = np.asarray(cfg.camera.K, float)
         return cls(cfg.airframe.f_max if f_max is None else f_max, tilt, a.pull_up_response, w, h,
                    a.pull_up_margin, float(k[0, 0]), float(k[1, 1]), cfg.safety.altitude_floor,
-                   1.0 / cfg.camera.rate)
+                   1.0 / cfg.camera.rate, cfg.camera.width, cfg.camera.height)
 
     @property
     def climb_accel(self) -> float:
@@ -90,12 +92,63 @@ class Manoeuvre:
     t_over: float  # s from the decision to over the plane (inf: stops short)
 
 
+CUT_PX = 3.0  # a box edge this close to the image border is cut (as companion/engagement.py cut_edge_px)
+
+
+def cut_axes(box: BoundingBox, width: int, height: int) -> tuple[bool, bool]:
+    """(width cut, height cut): the box touches a left/right or a top/bottom image border."""
+    x0, y0, x1, y1 = box.xyxy
+    return x0 <= CUT_PX or x1 >= width - CUT_PX, y0 <= CUT_PX or y1 >= height - CUT_PX
+
+
+class Expansion:
+    """Time-to-contact from the box's width and height separately, each only from frames where it is not cut by
+    the image border: the close detector's larger side switches from a cut (stuck) height to the growing width
+    as a target reaches the border, and its time-to-contact jumps up (a 2.5 x 3 m target read 3 s at 11 m)."""
+
+    WINDOW_S = 0.3
+
+    def __init__(self) -> None:
+        self._w: list[tuple[float, float]] = []
+        self._h: list[tuple[float, float]] = []
+
+    def reset(self) -> None:
+        self._w.clear()
+        self._h.clear()
+
+    def update(self, t: float, box: BoundingBox | None, width: int, height: int) -> float:
+        """The smaller of the two sides' times-to-contact (inf when neither has a full window)."""
+        if box is not None:
+            cw, ch = cut_axes(box, width, height)
+            if not cw:
+                self._w.append((t, box.w))
+            if not ch:
+                self._h.append((t, box.h))
+        return min(self._ttc(self._w, t), self._ttc(self._h, t))
+
+    def _ttc(self, hist: list[tuple[float, float]], now: float) -> float:
+        while hist and now - hist[0][0] > self.WINDOW_S:
+            hist.pop(0)
+        if len(hist) < 5 or hist[-1][0] - hist[0][0] < 0.6 * self.WINDOW_S or now - hist[-1][0] > 0.1:
+            return math.inf
+        t = np.array([a for a, _ in hist])
+        v = np.array([b for _, b in hist])
+        tm = float(t.mean())
+        slope = float((t - tm) @ (v - v.mean())) / float((t - tm) @ (t - tm))
+        if slope <= 0.0:
+            return math.inf
+        return max(0.0, float(v.mean()) / slope - (now - tm))
+
+
 def situation(box: BoundingBox, ttc: float, los_enu: np.ndarray | None, climb_rate: float | None,
               p: PullUpParams) -> Situation | None:
     """The situation, or None when the image cannot tell (no expansion yet, no LOS)."""
     if not (math.isfinite(ttc) and ttc > 0.0) or los_enu is None or box.w <= 1.0 or box.h <= 1.0:
         return None
-    rng = max(p.fx * p.width / box.w, p.fy * p.height / box.h)
+    cw, ch = cut_axes(box, p.image_w, p.image_h)
+    # A cut side reads the target farther than it is: use the whole one(s); both cut, the larger estimate.
+    ests = [e for e, cut in ((p.fx * p.width / box.w, cw), (p.fy * p.height / box.h, ch)) if not cut]
+    rng = max(ests) if ests else max(p.fx * p.width / box.w, p.fy * p.height / box.h)
     los = np.asarray(los_enu, float) / float(np.linalg.norm(los_enu))
     horiz = math.sqrt(max(1e-6, 1.0 - los[2] ** 2))
     gap = rng * horiz
@@ -103,24 +156,40 @@ def situation(box: BoundingBox, ttc: float, los_enu: np.ndarray | None, climb_ra
     return Situation(ttc, rng, gap, gap / ttc, -rng * float(los[2]), vz)
 
 
-def fly(s: Situation, tilt: float, delay: float, p: PullUpParams) -> Manoeuvre:
-    """The planned pull-up started ``delay`` s from now (closed form, point mass, drag ignored: it only helps)."""
-    t0 = delay + p.response
+def _track(s: Situation, tilt: float, t0: float, p: PullUpParams, t: float) -> tuple[float, float]:
+    """(horizontal gap, height above the centre) t s after the decision, the manoeuvre acting from t0."""
     ax, az = p.f_max * math.sin(tilt), p.f_max * math.cos(tilt) - G
+    u = max(0.0, t - t0)
+    return (s.gap - s.closing * t + 0.5 * ax * u * u, s.above + s.climb_rate * t + 0.5 * az * u * u)
+
+
+def fly(s: Situation, tilt: float, delay: float, p: PullUpParams, samples: int = 16) -> Manoeuvre:
+    """The planned pull-up started ``delay`` s from now (closed form, point mass, drag ignored: it only helps).
+
+    The clearance is the least distance between the planned track and the target's edge (the plate seen edge-on:
+    the segment of the target's height at gap 0) up to the moment the vehicle is over the target's plane, or
+    stops short of it."""
+    t0 = delay + p.response
+    ax = p.f_max * math.sin(tilt)
     top = 0.5 * p.height
-    if s.gap <= s.closing * t0:  # over the plane before the manoeuvre acts
-        t = s.gap / max(s.closing, 1e-9)
-        return Manoeuvre(tilt, s.above + s.climb_rate * t - top, t)
-    g0 = s.gap - s.closing * t0
-    z0 = s.above + s.climb_rate * t0
-    if ax <= 1e-9:
-        u = g0 / max(s.closing, 1e-9)
+    closing = max(s.closing, 1e-9)
+    if s.gap <= closing * t0:  # over the plane before the manoeuvre acts
+        t_end = t_over = s.gap / closing
     else:
-        disc = s.closing**2 - 2.0 * ax * g0
-        if disc < 0.0:  # braked to a stop short of the plane: the horizontal gap left is the clearance
-            return Manoeuvre(tilt, g0 - s.closing**2 / (2.0 * ax), math.inf)
-        u = (s.closing - math.sqrt(disc)) / ax
-    return Manoeuvre(tilt, z0 + s.climb_rate * u + 0.5 * az * u * u - top, t0 + u)
+        g0 = s.gap - closing * t0
+        if ax <= 1e-9:
+            t_over = t0 + g0 / closing
+            t_end = t_over
+        else:
+            disc = closing**2 - 2.0 * ax * g0
+            t_over = math.inf if disc < 0.0 else t0 + (closing - math.sqrt(disc)) / ax
+            t_end = t0 + closing / ax if disc < 0.0 else t_over  # braked to a stop short of the plane
+    clear = math.inf
+    for k in range(samples + 1):
+        gap, z = _track(s, tilt, t0, p, t_end * k / samples)
+        gap = max(gap, 0.0)
+        clear = min(clear, math.hypot(gap, z - top) if z > top else (gap if z >= -top else math.hypot(gap, z + top)))
+    return Manoeuvre(tilt, clear, t_over)
 
 
 def best(s: Situation, delay: float, p: PullUpParams, n: int = 6) -> Manoeuvre:
@@ -153,8 +222,10 @@ class PullUpPlanner:
         self.fired: Fire | None = None
         self.t_fire = 0.0
         self.levelled = False  # the engagement has levelled the vehicle after the flown pull-up
+        self.expansion = Expansion()
 
     def reset(self) -> None:
+        self.expansion.reset()
         self._count = 0
         self.last = None
         self.fired = None
@@ -167,6 +238,8 @@ class PullUpPlanner:
         lead = PERSIST * p.frame_dt  # the decision holds from the next frames on: plan as if started then
         why = ""
         m: Manoeuvre | None = None
+        own = self.expansion.update(t, box, p.image_w, p.image_h)
+        ttc = own if math.isfinite(own) else ttc
         s = situation(box, ttc, los_enu, climb_rate, p) if box is not None else None
         if s is not None:
             m = best(s, lead, p)
@@ -183,13 +256,28 @@ class PullUpPlanner:
         if self._count < PERSIST:
             return None
         tilt = m.tilt if m is not None else 0.0
-        # Full thrust until over the target (or stopped short) and a little after; never less than the time the
-        # sink takes to be arrested.
-        over = m.t_over if m is not None and math.isfinite(m.t_over) else 0.0
-        arrest = max(0.0, -(climb_rate or 0.0)) / max(p.climb_accel, 0.1) + p.response
-        self.fired = Fire(why, tilt, max(over + 0.3, arrest, 0.5))
+        self.fired = Fire(why, tilt, self._duration(s, tilt, climb_rate))
         self.t_fire = t
         return self.fired
+
+    def _duration(self, s: Situation | None, tilt: float, climb_rate: float | None) -> float:
+        """s of full thrust: until the sink is arrested and (when the target is known) until the climb has
+        gained the height over the top plus the margin, at most until over the target; then level (the climb
+        rate carries on)."""
+        p = self.p
+        az = max(p.f_max * math.cos(tilt) - G, 0.1)
+        vz = climb_rate if climb_rate is not None and math.isfinite(climb_rate) else 0.0
+        t = p.response + max(0.0, -vz) / az
+        if s is not None:
+            need = 0.5 * p.height + p.margin - s.above  # height to gain over the centre
+            # vz u + az u^2 / 2 = need (after the response at vz)
+            need -= vz * p.response
+            if need > 0.0:
+                u = (-vz + math.sqrt(vz * vz + 2.0 * az * need)) / az
+                t = max(t, p.response + u)
+            if math.isfinite(self.last.t_over if self.last else math.inf):
+                t = min(t, self.last.t_over + 0.3) if self.last else t
+        return max(t, 0.5)
 
     def setpoint(self, t: float, yaw_deg: float, hover_thrust: float) -> Setpoint | None:
         """The pull-up's setpoint at t (nose up by the planned tilt, full thrust), None once it is flown."""
