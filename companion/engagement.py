@@ -198,7 +198,8 @@ class Engagement:
         params = params or EngagementParams.from_config(cfg)
         eng = cls.create(params, controller, cfg.app, cfg.safety, lock)
         if params.on_close == "pull_up":
-            eng.pullup = PullUpPlanner(PullUpParams.from_config(cfg, f_max=params.f_max))
+            eng.pullup = PullUpPlanner(PullUpParams.from_config(cfg, f_max=params.f_max),
+                                       CameraModel.from_config(cfg.camera))
         return eng
 
     @classmethod

@@ -33,6 +33,7 @@ from companion.guidance import Setpoint
 
 if TYPE_CHECKING:
     from companion.config import Config
+    from perception.los import CameraModel
     from perception.types import BoundingBox
 
 G = 9.81
@@ -116,14 +117,13 @@ class Expansion:
         self._w.clear()
         self._h.clear()
 
-    def update(self, t: float, box: BoundingBox | None, width: int, height: int) -> float:
+    def update(self, t: float, size: Size | None) -> float:
         """The smaller of the two sides' times-to-contact (inf when neither has a full window)."""
-        if box is not None:
-            cw, ch = cut_axes(box, width, height)
-            if not cw:
-                self._w.append((t, box.w))
-            if not ch:
-                self._h.append((t, box.h))
+        if size is not None:
+            if not size.cut_w:
+                self._w.append((t, size.w))
+            if not size.cut_h:
+                self._h.append((t, size.h))
         return min(self._ttc(self._w, t), self._ttc(self._h, t))
 
     def _ttc(self, hist: list[tuple[float, float]], now: float) -> float:
@@ -140,15 +140,41 @@ class Expansion:
         return max(0.0, float(v.mean()) / slope - (now - tm))
 
 
-def situation(box: BoundingBox, ttc: float, los_enu: np.ndarray | None, climb_rate: float | None,
+@dataclass(frozen=True, slots=True)
+class Size:
+    """The box's width and height as the target's angular size, in pixels of the image centre (f tan), and
+    which of them the image border cuts. Angles, not pixels: a box near the image's edge is stretched by the
+    projection, and the attitude swings at the engagement's start read as an expansion (a 31 m target
+    "closing at 30 m/s" 0.2 s after engaging)."""
+
+    w: float
+    h: float
+    cut_w: bool
+    cut_h: bool
+
+
+def box_size(box: BoundingBox, p: PullUpParams, camera: CameraModel | None) -> Size:
+    cw, ch = cut_axes(box, p.image_w, p.image_h)
+    if camera is None:
+        return Size(box.w, box.h, cw, ch)
+    x0, y0, x1, y1 = box.xyxy
+
+    def span(a: tuple[float, float], b: tuple[float, float], f: float) -> float:
+        c = float(np.clip(camera.ray_cam(*a) @ camera.ray_cam(*b), -1.0, 1.0))
+        return 2.0 * f * math.tan(0.5 * math.acos(c))
+
+    return Size(span((x0, box.cy), (x1, box.cy), p.fx), span((box.cx, y0), (box.cx, y1), p.fy), cw, ch)
+
+
+def situation(size: Size, ttc: float, los_enu: np.ndarray | None, climb_rate: float | None,
               p: PullUpParams) -> Situation | None:
     """The situation, or None when the image cannot tell (no expansion yet, no LOS)."""
-    if not (math.isfinite(ttc) and ttc > 0.0) or los_enu is None or box.w <= 1.0 or box.h <= 1.0:
+    if not (math.isfinite(ttc) and ttc > 0.0) or los_enu is None or size.w <= 1.0 or size.h <= 1.0:
         return None
-    cw, ch = cut_axes(box, p.image_w, p.image_h)
     # A cut side reads the target farther than it is: use the whole one(s); both cut, the larger estimate.
-    ests = [e for e, cut in ((p.fx * p.width / box.w, cw), (p.fy * p.height / box.h, ch)) if not cut]
-    rng = max(ests) if ests else max(p.fx * p.width / box.w, p.fy * p.height / box.h)
+    ests = [e for e, cut in ((p.fx * p.width / size.w, size.cut_w), (p.fy * p.height / size.h, size.cut_h))
+            if not cut]
+    rng = max(ests) if ests else max(p.fx * p.width / size.w, p.fy * p.height / size.h)
     los = np.asarray(los_enu, float) / float(np.linalg.norm(los_enu))
     horiz = math.sqrt(max(1e-6, 1.0 - los[2] ** 2))
     gap = rng * horiz
@@ -215,8 +241,9 @@ class Fire:
 class PullUpPlanner:
     """Per engagement: each frame of ENGAGE, "pull up now?"; then the pull-up's setpoints."""
 
-    def __init__(self, params: PullUpParams) -> None:
+    def __init__(self, params: PullUpParams, camera: CameraModel | None = None) -> None:
         self.p = params
+        self.camera = camera  # box -> angular size (None: pixels, a pinhole near the image centre)
         self._count = 0
         self.last: Manoeuvre | None = None
         self.fired: Fire | None = None
@@ -238,9 +265,10 @@ class PullUpPlanner:
         lead = PERSIST * p.frame_dt  # the decision holds from the next frames on: plan as if started then
         why = ""
         m: Manoeuvre | None = None
-        own = self.expansion.update(t, box, p.image_w, p.image_h)
+        size = box_size(box, p, self.camera) if box is not None else None
+        own = self.expansion.update(t, size)
         ttc = own if math.isfinite(own) else ttc
-        s = situation(box, ttc, los_enu, climb_rate, p) if box is not None else None
+        s = situation(size, ttc, los_enu, climb_rate, p) if size is not None else None
         if s is not None:
             m = best(s, lead, p)
             self.last = m

@@ -10,12 +10,14 @@ import pytest
 from companion.config import Config
 from companion.limits import SafetyLimits
 from companion.pullup import (
-    G,
     Expansion,
+    G,
     PullUpParams,
     PullUpPlanner,
     Situation,
+    Size,
     arrest_loss,
+    box_size,
     fly,
     situation,
 )
@@ -70,7 +72,7 @@ def test_todays_trigger_is_too_late_and_the_planner_fires_in_time() -> None:
             fired_at = rng
             break
     assert fired_at is not None and fired_at > 0.25 * closing + 5.0
-    s = situation(BoundingBox(320, 240, P.fx * 2.5 / fired_at, P.fy * 3.0 / fired_at, 0.9, 0.0), fired_at / closing,
+    s = situation(Size(P.fx * 2.5 / fired_at, P.fy * 3.0 / fired_at, False, False), fired_at / closing,
                   np.array([1.0, 0.0, 0.0]), 0.0, P)
     assert s is not None and s.range == pytest.approx(fired_at)
     assert fly(s, planner.fired.tilt, 0.0, P).clearance >= P.margin - 0.3  # fired at most a frame late
@@ -84,7 +86,7 @@ def test_expansion_ignores_a_cut_side() -> None:
         t = k / 30
         rng = 12.0 - 10.0 * t
         w = 500 * 2.5 / rng
-        ttc = e.update(t, BoundingBox.from_xyxy(320 - w / 2, 0.0, 320 + w / 2, 200.0, 0.9, t), 640, 480)
+        ttc = e.update(t, box_size(BoundingBox.from_xyxy(320 - w / 2, 0.0, 320 + w / 2, 200.0, 0.9, t), P, None))
     assert ttc == pytest.approx((12.0 - 10.0 * 11 / 30) / 10.0, rel=0.1)
 
 
@@ -109,3 +111,24 @@ def test_floor_with_a_planned_pull_up() -> None:
     low = _feed(SafetyLimits(cfg.safety), 4.0, -4.0, arrest)
     assert low is not None and "pull-up" in low.detail
     assert _feed(SafetyLimits(cfg.safety), 1.9, 0.0, arrest) is not None  # below the floor: always
+
+
+def test_angular_size_does_not_grow_with_the_attitude() -> None:
+    """The same target (its rays fixed) seen at the image centre and near the corner after a rotation: the pixel
+    box grows (the projection stretches it), the angular size does not."""
+    from companion.config import CameraConfig
+    from perception.los import CameraModel
+
+    cam = CameraModel.from_config(CameraConfig())
+    f = float(cam.K[0, 0])
+    p = PullUpParams(P.f_max, P.max_tilt, P.response, P.width, P.height, P.margin, f, f, P.floor, P.frame_dt)
+    half = math.atan(1.25 / 20.0)  # a 2.5 m wide target at 20 m
+
+    def box_at(yaw: float) -> BoundingBox:
+        u = [cam.K[0, 2] + f * math.tan(yaw + s * half) for s in (-1, 1)]
+        return BoundingBox.from_xyxy(u[0], 230.0, u[1], 250.0, 0.9, 0.0)
+
+    centre, edge = box_at(0.0), box_at(math.radians(28.0))
+    assert edge.w > 1.1 * centre.w
+    assert box_size(edge, p, cam).w == pytest.approx(box_size(centre, p, cam).w, rel=1e-6)
+    assert box_size(centre, p, cam).w == pytest.approx(2 * f * math.tan(half), rel=1e-6)

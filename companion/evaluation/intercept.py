@@ -1,7 +1,8 @@
 """``companion eval intercept``: the paper's end-to-end experiment (a receding truck, a pull-up before impact) in
 the in-process simulator, scored by truth, with the evasive sinusoid gate as a reported row.
 
-Groups (``--runs N`` is spread evenly over them; every run draws its own target speed and start distance):
+Groups (``--runs N``: N intercepts spread evenly over the four intercept groups, and as many runs again in each
+evasive row as in one intercept group; every intercept draws its own target speed and start distance):
 
 * ``truck``   the paper's: a 2.5 m x 3 m target standing on the ground, driving away at 8-10 m/s, the vehicle
               40 m behind (4-8 m up), ``app.on_close: pull_up``;
@@ -86,8 +87,7 @@ def truck_overrides(*, speed: float, distance: float, ground: bool, wind: tuple[
 
 
 def suite_intercept(cfg: Config, runs: int | None = None, seed: int = 0) -> Suite:
-    cells = len(INTERCEPT_GROUPS) + len(EVASIVE_GROUPS)
-    n = max(1, (runs or 120) // cells)
+    n = max(1, (runs or 120) // len(INTERCEPT_GROUPS))  # --runs counts the intercepts; each evasive row adds n
     rng = np.random.default_rng(np.random.SeedSequence([seed, 19]))
     jobs: list[Job] = []
     for k, grp in enumerate(INTERCEPT_GROUPS):
