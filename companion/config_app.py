@@ -125,7 +125,10 @@ class SyntheticCameraConfig(Section):
     render: Literal["geometric", "image"] = Field(
         "image", description="geometric: projected box; image: rendered frames through the detector"
     )
-    motion: Literal["stationary", "linear_slow", "linear_fast", "planar", "knot"] = "linear_fast"
+    motion: Literal["stationary", "linear_slow", "linear_fast", "planar", "knot", "recede", "sinusoid"] = Field(
+        "linear_fast", description="the gates' motion (companion/sim/gates.py; recede and sinusoid as sim.gates sets "
+        "them); the target's shape, size and ground placement come from sim.target"
+    )
     distance: Meters = Field(25.0, gt=1.0, le=500.0, description="m from the vehicle to the first gate")
     lateral_offset: Meters = Field(0.0, ge=-100.0, le=100.0, description="m, to the right of the heading")
     height_offset: Meters = Field(0.0, ge=-50.0, le=50.0, description="m above the vehicle")
