@@ -36,5 +36,5 @@ def test_a_receding_rectangle_on_the_ground() -> None:
 def test_the_renderer_refuses_a_rectangle() -> None:
     cfg = load_config([], ["sim.target.shape=square"])
     pose = _pose([0.0, 0.0, -10.0])
-    with pytest.raises(ValueError, match="sim.target.shape"):
+    with pytest.raises(ValueError, match=r"sim\.target\.shape"):
         SyntheticCamera(cfg, lambda: pose, render="image")
