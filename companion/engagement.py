@@ -256,7 +256,7 @@ class Engagement:
             return self._acquire(t, box, q_wxyz_ned_frd)
         if ph is Phase.ENGAGE:
             return self._engage_step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt)
-        below = self.limits.floor(t, baro_rel_alt, self._arrest())
+        below = self.limits.floor(t, baro_rel_alt, self._arrest(t))
         if below is not None:
             return self._end(t, Phase.ABORT, below.reason, below.detail)
         if ph is Phase.PASS:
@@ -299,7 +299,7 @@ class Engagement:
             self._last_valid = t
             self._last_size = max(box.w, box.h) if box is not None else 0.0
         self._note_los(out)
-        abort = self.limits.check(t, self._engage_start, self._last_valid, baro, self._arrest())
+        abort = self.limits.check(t, self._engage_start, self._last_valid, baro, self._arrest(t))
         if abort is not None:
             return self._end(t, Phase.ABORT, abort.reason, abort.detail, out)
         est = self.close.update(t, box, getattr(out, "mode", "") == "pn")
@@ -454,12 +454,13 @@ class Engagement:
         return Setpoint(0.0, pitch, yaw, min(1.0, thrust / math.cos(math.radians(pitch))),
                         R_from_euler_ned_deg(0.0, pitch, yaw))
 
-    def _arrest(self) -> Callable[[float], float] | None:
-        """The floor's look-ahead while a pull-up is planned: the height its sink arrest would lose."""
+    def _arrest(self, t: float) -> Callable[[float], float] | None:
+        """The floor's look-ahead while a pull-up is planned (or flown): the height its sink arrest would lose."""
         if self.pullup is None:
             return None
-        pp = self.pullup.p
-        return lambda rate: arrest_loss(rate, 0.0, pp)
+        pp, fired = self.pullup.p, self.pullup.fired is not None
+        elapsed = t - self.pullup.t_fire if fired else 0.0
+        return lambda rate: arrest_loss(rate, 0.0, pp, elapsed)
 
     # -- what the engagement claims ----------------------------------------------------------------------
     @property

@@ -224,11 +224,12 @@ def best(s: Situation, delay: float, p: PullUpParams, n: int = 6) -> Manoeuvre:
     return max((fly(s, a, delay, p) for a in tilts), key=lambda m: m.clearance)
 
 
-def arrest_loss(climb_rate: float, delay: float, p: PullUpParams) -> float:
+def arrest_loss(climb_rate: float, delay: float, p: PullUpParams, elapsed: float = 0.0) -> float:
     """Height lost (m, >= 0) before a sink is arrested by a pull-up started ``delay`` s from now at full thrust,
-    level: the floor's look-ahead while a pull-up is planned."""
+    level: the floor's look-ahead while a pull-up is planned. ``elapsed``: s since a pull-up began (its response
+    is partly over: counting all of it again tripped the floor 4 frames into pull-ups that bottomed out above it)."""
     sink = max(0.0, -climb_rate)
-    return sink * (delay + p.response) + sink * sink / (2.0 * max(p.climb_accel, 0.1))
+    return sink * (delay + max(0.0, p.response - elapsed)) + sink * sink / (2.0 * max(p.climb_accel, 0.1))
 
 
 @dataclass(frozen=True, slots=True)

@@ -129,8 +129,11 @@ def intercept_stats(rs: list[dict]) -> dict[str, Any]:
     miss = [r.get("pullup_predicted_miss_m") for r in rs]
     clear = [r.get("pullup_clearance_m") for r in rs]
     reached = [m is not None and m <= GOALS["reached_m"] for m in miss]
+    # Cleared: pulled up, handed back (an abort during the pull-up leaves the rest to PX4: not counted as cleared),
+    # never touched the ground, and the least distance to the target's box after the pull-up >= 1 m.
     cleared = [bool(r.get("pullup_pulled_up")) and c is not None and c >= GOALS["cleared_m"] and
-               r.get("end_reason") != "ground" for r, c in zip(rs, clear, strict=True)]
+               r.get("end_reason") != "ground" and r.get("engagement_end") == "HANDBACK"
+               for r, c in zip(rs, clear, strict=True)]
     floor = [str(r.get("engagement_end", "")).endswith("ALTITUDE_FLOOR") for r in rs]
     ends: dict[str, int] = {}
     for r in rs:
@@ -151,6 +154,8 @@ def intercept_stats(rs: list[dict]) -> dict[str, Any]:
                                                    if r.get("pullup_speed_at_pullup_mps") is not None]))
         if any(r.get("pullup_speed_at_pullup_mps") is not None for r in rs) else None,
         "duration_mean_s": float(np.mean(dur)) if dur else None, "ends": ends,
+        "min_altitude_m": min((r["pullup_min_altitude_m"] for r in rs if r.get("pullup_min_altitude_m") is not None),
+                              default=None),
         "_reached": reached, "_cleared": cleared,
     }
 
@@ -165,7 +170,7 @@ def report_intercept(results: list[dict], radii: list[float]) -> tuple[dict, str
     lines = ["| Group | runs | reached: miss <= 0.9 m [95 % CI] | cleared >= 1 m [95 % CI] | miss median / max m "
              f"(paper {p['predicted_miss_m']}) | clearance min / median m | top speed mean / max m/s (paper "
              f"{p['top_speed_mps']}) | speed at pull-up m/s | duration s (paper {p['duration_s']}) | floor trips | "
-             "ends |", "|---" * 11 + "|"]
+             "lowest altitude m | ends |", "|---" * 12 + "|"]
     everything: list[dict] = []
     for grp in (*INTERCEPT_GROUPS, "all"):
         rs = [r for r in results if r.get("group") in INTERCEPT_GROUPS] if grp == "all" else [
@@ -181,6 +186,7 @@ def report_intercept(results: list[dict], radii: list[float]) -> tuple[dict, str
             f"{_f(st['miss_median_m'])} / {_f(st['miss_max_m'])} | {_f(st['clearance_min_m'])} / "
             f"{_f(st['clearance_median_m'])} | {_f(st['top_speed_mean_mps'], 1)} / {_f(st['top_speed_max_mps'], 1)} | "
             f"{_f(st['speed_at_pullup_mean_mps'], 1)} | {_f(st['duration_mean_s'])} | {st['floor_trips']} | "
+            f"{_f(st['min_altitude_m'])} | "
             f"{', '.join(f'{k} {v}' for k, v in sorted(st['ends'].items()))} |")
     if everything:
         st = groups["all"]

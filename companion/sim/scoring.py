@@ -173,6 +173,7 @@ class PullUpScorer:
     miss: float | None = None  # m, predicted miss
     clearance: float = math.inf  # m, after the pull-up
     speed_at_pullup: float | None = None
+    min_altitude: float = math.inf  # m, the vehicle's lowest true altitude over the whole run
     _last: tuple | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -180,6 +181,7 @@ class PullUpScorer:
 
     def update(self, t: float, p: np.ndarray, v: np.ndarray, g: np.ndarray, gv: np.ndarray, pulled: bool) -> None:
         """One frame: ``pulled`` once the engagement has pulled up (this frame's state is the first after it)."""
+        self.min_altitude = min(self.min_altitude, float(p[2]))
         if not pulled:
             self._last = (p.copy(), v.copy(), g.copy(), np.asarray(gv, float).copy())
             return
@@ -194,4 +196,5 @@ class PullUpScorer:
     def as_dict(self) -> dict:
         return {"pulled_up": self.t_pullup is not None, "t_pullup_s": self.t_pullup, "predicted_miss_m": self.miss,
                 "clearance_m": self.clearance if math.isfinite(self.clearance) else None,
-                "speed_at_pullup_mps": self.speed_at_pullup}
+                "speed_at_pullup_mps": self.speed_at_pullup,
+                "min_altitude_m": self.min_altitude if math.isfinite(self.min_altitude) else None}
