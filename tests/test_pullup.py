@@ -106,6 +106,10 @@ def test_floor_with_a_planned_pull_up() -> None:
     cfg = Config()
     arrest = lambda rate: arrest_loss(rate, 0.0, P)  # noqa: E731
     assert arrest(-4.0) == pytest.approx(4.0 * 0.35 + 16.0 / (2 * G))
+    # Into a pull-up, only the response still to come counts (0.1 s in: 0.25 s of it left; all of it: none).
+    assert arrest_loss(-4.0, 0.0, P, elapsed=0.1) == pytest.approx(4.0 * 0.25 + 16.0 / (2 * G))
+    assert arrest_loss(-4.0, 0.0, P, elapsed=1.0) == pytest.approx(16.0 / (2 * G))
+    assert arrest_loss(2.0, 0.0, P) == 0.0  # climbing: nothing to arrest
     assert _feed(SafetyLimits(cfg.safety), 5.0, -4.0, None) is not None
     assert _feed(SafetyLimits(cfg.safety), 5.0, -4.0, arrest) is None
     low = _feed(SafetyLimits(cfg.safety), 4.0, -4.0, arrest)
