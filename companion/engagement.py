@@ -305,7 +305,7 @@ class Engagement:
         est = self.close.update(t, box, getattr(out, "mode", "") == "pn")
         why = f"gate close: {est.why}"
         fire = None if self.pullup is None else self.pullup.decide(
-            t, box if valid else None, est.ttc, self._los_enu, baro, self.limits.climb_rate)
+            t, box if valid else None, est.ttc, self._los_enu, baro, self.limits.climb_rate, q)
         if fire is not None:
             est, why = replace(est, close=True, why=fire.why), f"gate close: {fire.why}"
         elif not est.close and not valid and self._near(est):

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.frames import R_from_euler_ned_deg
+from companion.frames import R_from_euler_ned_deg, R_from_quat_wxyz
 from companion.guidance import Setpoint
 
 if TYPE_CHECKING:
@@ -153,17 +153,31 @@ class Size:
     cut_h: bool
 
 
-def box_size(box: BoundingBox, p: PullUpParams, camera: CameraModel | None) -> Size:
+def image_roll(q_wxyz_ned_frd: np.ndarray, camera: CameraModel) -> float:
+    """rad: how far the image is rolled from the horizon (the world's down direction against the image's)."""
+    R = R_from_quat_wxyz(q_wxyz_ned_frd) @ camera.R_body_cam  # camera -> NED
+    down = R.T @ np.array([0.0, 0.0, 1.0])  # world down in the camera frame (OpenCV: y down)
+    return math.atan2(float(down[0]), float(down[1]))
+
+
+def box_size(box: BoundingBox, p: PullUpParams, camera: CameraModel | None, roll: float = 0.0) -> Size:
+    """The target's angular width and height from its box. With the image rolled by ``roll`` an upright W x H
+    rectangle's axis-aligned box is W cos + H sin wide and W sin + H cos high: each side is turned back into the
+    target's own width (height) with the known aspect, or a bank reads as an expansion (on PX4 SIH a banked start
+    read a receding target 46 m away as closing at 36 m/s)."""
     cw, ch = cut_axes(box, p.image_w, p.image_h)
+    c, sn, k = abs(math.cos(roll)), abs(math.sin(roll)), p.height / p.width
     if camera is None:
-        return Size(box.w, box.h, cw, ch)
-    x0, y0, x1, y1 = box.xyxy
+        w, h = box.w, box.h
+    else:
+        x0, y0, x1, y1 = box.xyxy
 
-    def span(a: tuple[float, float], b: tuple[float, float], f: float) -> float:
-        c = float(np.clip(camera.ray_cam(*a) @ camera.ray_cam(*b), -1.0, 1.0))
-        return 2.0 * f * math.tan(0.5 * math.acos(c))
+        def span(a: tuple[float, float], b: tuple[float, float], f: float) -> float:
+            cosang = float(np.clip(camera.ray_cam(*a) @ camera.ray_cam(*b), -1.0, 1.0))
+            return 2.0 * f * math.tan(0.5 * math.acos(cosang))
 
-    return Size(span((x0, box.cy), (x1, box.cy), p.fx), span((box.cx, y0), (box.cx, y1), p.fy), cw, ch)
+        w, h = span((x0, box.cy), (x1, box.cy), p.fx), span((box.cx, y0), (box.cx, y1), p.fy)
+    return Size(w / (c + k * sn), k * h / (sn + k * c), cw, ch)
 
 
 def situation(size: Size, ttc: float, los_enu: np.ndarray | None, climb_rate: float | None,
@@ -260,13 +274,16 @@ class PullUpPlanner:
         self.levelled = False
 
     def decide(self, t: float, box: BoundingBox | None, ttc: float, los_enu: np.ndarray | None,
-               altitude: float | None, climb_rate: float | None) -> Fire | None:
-        """A Fire when the pull-up must start now (for ``PERSIST`` frames in a row), else None."""
+               altitude: float | None, climb_rate: float | None, q_wxyz_ned_frd: np.ndarray | None = None
+               ) -> Fire | None:
+        """A Fire when the pull-up must start now (for ``PERSIST`` frames in a row), else None. ``q``: the attitude
+        at the frame (the image's roll), when known."""
         p = self.p
         lead = PERSIST * p.frame_dt  # the decision holds from the next frames on: plan as if started then
         why = ""
         m: Manoeuvre | None = None
-        size = box_size(box, p, self.camera) if box is not None else None
+        roll = image_roll(q_wxyz_ned_frd, self.camera) if q_wxyz_ned_frd is not None and self.camera else 0.0
+        size = box_size(box, p, self.camera, roll) if box is not None else None
         own = self.expansion.update(t, size)
         ttc = own if math.isfinite(own) else ttc
         s = situation(size, ttc, los_enu, climb_rate, p) if size is not None else None

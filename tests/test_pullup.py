@@ -136,3 +136,22 @@ def test_angular_size_does_not_grow_with_the_attitude() -> None:
     assert edge.w > 1.1 * centre.w
     assert box_size(edge, p, cam).w == pytest.approx(box_size(centre, p, cam).w, rel=1e-6)
     assert box_size(centre, p, cam).w == pytest.approx(2 * f * math.tan(half), rel=1e-6)
+
+
+def test_a_banked_image_is_not_an_expansion() -> None:
+    """A 2.5 x 3 m rectangle 20 m away seen with the image rolled 20 deg: its axis-aligned box is W cos + H sin
+    wide and W sin + H cos high (larger than level); turned back, the sizes are the level ones."""
+    from companion.config import CameraConfig
+    from companion.frames import R_from_euler_ned_deg, quat_wxyz_from_R
+    from companion.pullup import image_roll
+    from perception.los import CameraModel
+
+    cam = CameraModel.from_config(CameraConfig())
+    roll = image_roll(quat_wxyz_from_R(R_from_euler_ned_deg(20.0, 0.0, 0.0)), cam)
+    assert abs(roll) == pytest.approx(math.radians(20.0), abs=1e-9)
+    c, s = math.cos(roll), abs(math.sin(roll))
+    w, h = P.fx * 2.5 / 20.0, P.fy * 3.0 / 20.0
+    level = box_size(BoundingBox(320, 240, w, h, 0.9, 0.0), P, None)
+    banked = box_size(BoundingBox(320, 240, w * c + h * s, w * s + h * c, 0.9, 0.0), P, None, roll)
+    assert (banked.w, banked.h) == pytest.approx((level.w, level.h), rel=1e-9)
+    assert (level.w, level.h) == pytest.approx((w, h), rel=1e-9)
