@@ -126,7 +126,10 @@ class SyntheticCameraConfig(Section):
     render: Literal["geometric", "image"] = Field(
         "image", description="geometric: projected box; image: rendered frames through the detector"
     )
-    motion: Literal["stationary", "linear_slow", "linear_fast", "planar", "knot"] = "linear_fast"
+    motion: Literal["stationary", "linear_slow", "linear_fast", "planar", "knot", "recede", "sinusoid"] = Field(
+        "linear_fast", description="the gates' motion (companion/sim/gates.py; recede and sinusoid as sim.gates sets "
+        "them); the target's shape, size and ground placement come from sim.target"
+    )
     distance: Meters = Field(25.0, gt=1.0, le=500.0, description="m from the vehicle to the first gate")
     lateral_offset: Meters = Field(0.0, ge=-100.0, le=100.0, description="m, to the right of the heading")
     height_offset: Meters = Field(0.0, ge=-50.0, le=50.0, description="m above the vehicle")
@@ -162,7 +165,22 @@ class AppConfig(Section):
         description="fly_through: hold attitude until the gate leaves the view; pull_up: recover at once",
     )
     pull_up_pitch: Deg = Field(
-        25.0, ge=0.0, le=45.0, description="deg nose-up in a pull-up (brakes and climbs before impact)"
+        25.0, ge=0.0, le=45.0, description="deg nose-up in a pull-up at most (brakes and climbs before impact; the "
+        "planner picks the tilt up to this that clears the target's top by the most, companion/pullup.py)"
+    )
+    pull_up_margin: Meters = Field(
+        1.5, ge=0.0, le=50.0, description="pull_up: planned clearance over the target's top, m (the pull-up fires "
+        "when a later one would clear it by less)"
+    )
+    pull_up_response: Seconds = Field(
+        0.35, ge=0.0, le=5.0, description="pull_up: s from the decision until the vehicle accelerates as planned "
+        "(attitude and thrust lag, frame latency)"
+    )
+    target_width: Meters = Field(
+        0.0, ge=0.0, le=100.0, description="pull_up: the target's width, m (0 = 2 x guidance.gate_radius)"
+    )
+    target_height: Meters = Field(
+        0.0, ge=0.0, le=100.0, description="pull_up: the target's height, m (0 = its width)"
     )
     pass_timeout: Seconds = Field(1.0, gt=0.0, le=10.0, description="s; longest hold while passing a gate")
     recover_time: Seconds = Field(1.0, gt=0.0, le=30.0, description="s of level attitude and hover thrust")

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal, Protocol
 
@@ -42,6 +42,7 @@ from companion import guidance
 from companion.frames import P_NED_ENU, R_from_euler_ned_deg, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import Setpoint
 from companion.limits import CloseDetector, SafetyLimits
+from companion.pullup import PullUpParams, PullUpPlanner, arrest_loss
 from companion.reasons import Reason
 from companion.targetlock import LockParams, TargetLock
 from companion.verify import TargetVerifier, VerifyParams
@@ -191,6 +192,7 @@ class Engagement:
     used_box: BoundingBox | None = None  # the box this step's decisions used (None: none, or rejected)
     awaiting: bool = False  # a stable candidate waits for the operator's confirmation (app.engage confirm)
     _confirm: bool | None = None  # this step's confirmation (None: not needed)
+    pullup: PullUpPlanner | None = None  # on_close=pull_up: when to pull up and how (companion/pullup.py)
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -199,10 +201,14 @@ class Engagement:
             g = cfg.guidance
             lock = TargetLock(LockParams(g.v_rel_bar, g.gate_radius, cfg.los_filter.max_rate,
                                          float(cfg.perception.max_growth_rate)), CameraModel.from_config(cfg.camera))
-        e = cls.create(params or EngagementParams.from_config(cfg), controller, cfg.app, cfg.safety, lock)
+        params = params or EngagementParams.from_config(cfg)
+        eng = cls.create(params, controller, cfg.app, cfg.safety, lock)
         if cfg.app.verify.enabled:
-            e.verifier = TargetVerifier(VerifyParams.from_config(cfg))
-        return e
+            eng.verifier = TargetVerifier(VerifyParams.from_config(cfg))
+        if params.on_close == "pull_up":
+            eng.pullup = PullUpPlanner(PullUpParams.from_config(cfg, f_max=params.f_max),
+                                       CameraModel.from_config(cfg.camera))
+        return eng
 
     @classmethod
     def create(cls, params: EngagementParams, controller: Steering, app: AppConfig,
@@ -272,7 +278,7 @@ class Engagement:
             return self._acquire(t, box, q_wxyz_ned_frd)
         if ph is Phase.ENGAGE:
             return self._engage_step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt)
-        below = self.limits.floor(t, baro_rel_alt)
+        below = self.limits.floor(t, baro_rel_alt, self._arrest(t))
         if below is not None:
             return self._end(t, Phase.ABORT, below.reason, below.detail)
         if ph is Phase.PASS:
@@ -301,6 +307,8 @@ class Engagement:
         prev = self.phase
         self.controller.reset()
         self.close.reset()
+        if self.pullup is not None:
+            self.pullup.reset()
         if self.lock is not None:
             self.lock.reset()
             if box is not None:
@@ -322,12 +330,16 @@ class Engagement:
             self._last_valid = t
             self._last_size = max(box.w, box.h) if box is not None else 0.0
         self._note_los(out)
-        abort = self.limits.check(t, self._engage_start, self._last_valid, baro)
+        abort = self.limits.check(t, self._engage_start, self._last_valid, baro, self._arrest(t))
         if abort is not None:
             return self._end(t, Phase.ABORT, abort.reason, abort.detail, out)
         est = self.close.update(t, box, getattr(out, "mode", "") == "pn")
         why = f"gate close: {est.why}"
-        if not est.close and not valid and self._near(est) and not (self._rejecting or self._unverified):
+        fire = None if self.pullup is None else self.pullup.decide(
+            t, box if valid else None, est.ttc, self._los_enu, baro, self.limits.climb_rate, q)
+        if fire is not None:
+            est, why = replace(est, close=True, why=fire.why), f"gate close: {fire.why}"
+        elif not est.close and not valid and self._near(est) and not (self._rejecting or self._unverified):
             # The gate vanished while close (a detector often loses a ring that fills the image): the pass has
             # begun. Without this the controller would coast until "target lost" aborted a good pass.
             why = f"gate lost while close (time-to-contact {est.ttc:.2f} s, box {est.size_frac:.2f} of the width)"
@@ -389,6 +401,15 @@ class Engagement:
             if self._gone >= p.pass_gone_frames:
                 self._old_gone = True
                 self._streak = 1 if valid else 0
+        if self.pullup is not None and self.pullup.fired is not None and p.on_close == "pull_up":
+            # The planned pull-up (full thrust, tilted back) until it is flown, then level at recover thrust.
+            yaw = euler_ned_deg_from_R(R_from_quat_wxyz(q))[2]
+            planned = self.pullup.setpoint(t, yaw, self._thrust_model()[0])
+            if planned is not None:
+                return Decision(t, Phase.RECOVER, planned)
+            if not self.pullup.levelled:
+                self.pullup.levelled = True
+                self._sp = self._recover_setpoint(q)
         if t - self._t_phase < p.recover_time:
             return Decision(t, Phase.RECOVER, self._sp)
         passed = sum(g.status == "confirmed" for g in self.passes)
@@ -472,10 +493,22 @@ class Engagement:
         thrust = min(1.0, self._thrust_model()[0] * p.recover_thrust_scale)
         if not pull_up:
             return guidance.hover_setpoint(yaw, thrust)
+        if self.pullup is not None and self.pullup.fired is not None:
+            planned = self.pullup.setpoint(self.pullup.t_fire, yaw, self._thrust_model()[0])
+            if planned is not None:
+                return planned
         # Nose up: the thrust tilts backwards (brakes); its vertical part still carries scale x weight.
         pitch = p.pull_up_pitch
         return Setpoint(0.0, pitch, yaw, min(1.0, thrust / math.cos(math.radians(pitch))),
                         R_from_euler_ned_deg(0.0, pitch, yaw))
+
+    def _arrest(self, t: float) -> Callable[[float], float] | None:
+        """The floor's look-ahead while a pull-up is planned (or flown): the height its sink arrest would lose."""
+        if self.pullup is None:
+            return None
+        pp, fired = self.pullup.p, self.pullup.fired is not None
+        elapsed = t - self.pullup.t_fire if fired else 0.0
+        return lambda rate: arrest_loss(rate, 0.0, pp, elapsed)
 
     # -- what the engagement claims ----------------------------------------------------------------------
     @property

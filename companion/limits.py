@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,11 +121,17 @@ class SafetyLimits:
     def __init__(self, safety: SafetyConfig) -> None:
         self.cfg = safety
         self._baro: deque[tuple[float, float]] = deque(maxlen=256)
+        self.climb_rate: float | None = None  # m/s, up positive: the last fitted barometric slope (None: too few)
 
-    def floor(self, now: float, baro_rel_alt: float | None) -> Abort | None:
+    def floor(self, now: float, baro_rel_alt: float | None,
+              arrest: Callable[[float], float] | None = None) -> Abort | None:
         """The altitude floor, with a look-ahead: a vehicle diving at 10 m/s (seen on PX4 when the app engaged a
         false detection) passes a 2 m floor in 0.2 s, faster than Hold can brake it, so the floor also trips
-        when the altitude extrapolated ``floor_lookahead`` seconds at the current sink rate would be below it."""
+        when the altitude extrapolated ``floor_lookahead`` seconds at the current sink rate would be below it.
+
+        ``arrest`` (climb rate m/s -> height lost, m): a pull-up is planned (companion/pullup.py arrest_loss), so
+        the look-ahead is the altitude after that pull-up's sink arrest instead: a dive at a target on the ground
+        is safe as long as the pull-up can still stop it above the floor."""
         c = self.cfg
         if baro_rel_alt is None or not math.isfinite(baro_rel_alt) or not math.isfinite(now):
             return None
@@ -143,7 +150,15 @@ class SafetyLimits:
         t_mean = float(t.mean())
         t = t - t_mean
         rate = float(t @ (h - h.mean())) / float(t @ t)
+        self.climb_rate = rate
         now_fit = float(h.mean()) + rate * (now - t_mean)  # the fitted altitude now: less noisy than one sample
+        if arrest is not None:
+            ahead = now_fit - arrest(rate)
+            if ahead < c.altitude_floor:
+                return Abort(Reason.ALTITUDE_FLOOR,
+                             f"sinking at {-rate:.1f} m/s at {baro_rel_alt:.1f} m: a pull-up now would bottom out "
+                             f"at {ahead:.1f} m, below the floor {c.altitude_floor:.1f} m")
+            return None
         ahead = now_fit + min(0.0, rate) * c.floor_lookahead
         if ahead < c.altitude_floor:
             return Abort(Reason.ALTITUDE_FLOOR,
@@ -157,9 +172,10 @@ class SafetyLimits:
         engage_start: float,
         last_valid_box: float,
         baro_rel_alt: float | None,
+        arrest: Callable[[float], float] | None = None,
     ) -> Abort | None:
         c = self.cfg
-        floor = self.floor(now, baro_rel_alt)
+        floor = self.floor(now, baro_rel_alt, arrest)
         if floor is not None:
             return floor
         lost = now - last_valid_box

@@ -113,10 +113,14 @@ class SyntheticScene:
             fwd_ned = np.array([1.0, 0.0, 0.0])
         fwd = ned_to_enu(fwd_ned / np.linalg.norm(fwd_ned))
         right = np.cross(fwd, [0.0, 0.0, 1.0])
-        self.radius = sc.radius
+        tgt = cfg.sim.target
+        self.size = tgt.size(sc.radius)  # (width, height) m; a ring's width is its diameter
+        self.radius = 0.5 * self.size[0] if tgt.width is not None else sc.radius
         self.gates: list[GateMotion] = []
         for k in range(sc.count):
             centre = p_enu + fwd * sc.distance * (k + 1) + right * sc.lateral_offset + [0, 0, sc.height_offset]
+            if tgt.on_ground:  # standing on the ground (ENU z = 0 is the take-off point's ground)
+                centre[2] = 0.5 * self.size[1]
             # The normal points back at the vehicle's start side (the sim's convention).
             self.gates.append(make_gate(sc.motion, centre, -fwd, rng=rng, gates_cfg=cfg.sim.gates))
 
@@ -147,6 +151,11 @@ class SyntheticCamera:
         simcam = cfg.sim.camera
         self.geo = GeometricCamera(self.model, simcam.pixel_noise, simcam.drop_prob, simcam.min_box,
                                    np.random.default_rng(cfg.sim.seed + 1))
+        if cfg.sim.target.shape != "ring":
+            if self.render != "geometric":
+                raise ValueError(f"synthetic camera: sim.target.shape {cfg.sim.target.shape!r} needs "
+                                 "app.synthetic.render: geometric (the renderer draws rings)")
+            self.geo.use_rectangle(*cfg.sim.target.size(cfg.app.synthetic.radius))
         self.scene: SyntheticScene | None = None
         self.t_scene0 = 0.0
         self.index = 0

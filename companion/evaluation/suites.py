@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from companion.evaluation.intercept import PAPER_INTERCEPT, suite_intercept
 from companion.evaluation.stats import add_intervals, fmt_rate
 from companion.evaluation.tables import fmt, reasons
 from companion.sim.runner import RunSpec, with_overrides
@@ -23,7 +24,7 @@ from companion.sim.scoring import aggregate, rkey
 if TYPE_CHECKING:
     from companion.config import Config
 
-SUITES = ("table1", "latency", "vrel", "baseline")
+SUITES = ("table1", "latency", "vrel", "baseline", "intercept")
 
 # The paper's numbers (Table I with reward R_dt, Fig. latency, Table II v_rel, Table III).
 PAPER = {
@@ -47,6 +48,7 @@ PAPER = {
         "top_speed_mps": {"30m": 15.0, "150m": 25.0},
     },
     "baseline": {"linear": {"baseline": 0.35, "pn": 0.69}, "planar": {"baseline": 0.41, "pn": 0.56}},
+    "intercept": PAPER_INTERCEPT,  # companion/evaluation/intercept.py
 }
 
 TABLE1_MOTIONS = ("stationary", "linear_slow", "linear_fast", "planar", "knot")
@@ -224,4 +226,6 @@ def build_suite(name: str, cfg: Config, runs: int | None = None, seed: int = 0) 
         return suite_latency(cfg, runs)
     if name == "vrel":
         return suite_vrel(cfg, runs)
+    if name == "intercept":
+        return suite_intercept(cfg, runs, seed)  # type: ignore[return-value]  # duck-typed Suite
     return suite_baseline(cfg, runs, seed)

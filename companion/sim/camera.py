@@ -20,6 +20,10 @@ the box is smaller than ``min_box`` pixels, or when the frame is dropped. Pixel 
 added to the box centre and size: white (``pixel_noise``) or, opted in, the detector-like error model of
 companion/sim/boxnoise.py (coloured, size-dependent, wrong targets and misses). Latency is the
 runner's job (it delivers the box of a frame captured at t at t + delay).
+
+A square or rectangular target (``use_rectangle``: half width along the plane's horizontal axis, half height
+along its vertical one) is projected the same way from its outline (its edges sampled, so a target partly behind
+the camera or cut by the border gives the extent of what is in view): its box is the rectangle's, not a ring's.
 """
 
 from __future__ import annotations
@@ -43,7 +47,17 @@ _ANG = np.linspace(0.0, 2 * math.pi, _N_RIM, endpoint=False)
 _COS_SIN = np.column_stack((np.cos(_ANG), np.sin(_ANG)))
 _ANG_FINE = np.linspace(0.0, 2 * math.pi, 4 * _N_RIM, endpoint=False)
 _COS_SIN_FINE = np.column_stack((np.cos(_ANG_FINE), np.sin(_ANG_FINE)))  # the visible arc of a cut ring
-_NEXT_FINE = np.roll(np.arange(_ANG_FINE.size), -1)  # chord k joins rim samples k and k + 1
+
+
+def _rect_outline(per_edge: int = 16) -> np.ndarray:
+    """(4 per_edge, 2) unit-square outline (+-1, +-1) sampled along its edges, in order (a closed polygon)."""
+    s = np.linspace(-1.0, 1.0, per_edge, endpoint=False)
+    one = np.ones_like(s)
+    return np.vstack((np.column_stack((s, -one)), np.column_stack((one, s)), np.column_stack((-s, one)),
+                      np.column_stack((-one, -s))))
+
+
+_RECT_UNIT = _rect_outline()
 
 
 @lru_cache(maxsize=64)
@@ -104,6 +118,11 @@ class GeometricCamera:
         self._R_flu_cam = F_FRD_FLU @ model.R_body_cam
         self._distorted = bool(model.dist.size and np.any(model.dist != 0.0))
         self.detector_noise: DetectorNoise | None = None  # set: the detector error model replaces pixel_noise
+        self.rect: tuple[float, float] | None = None  # (half width, half height) of a rectangular target; None: ring
+
+    def use_rectangle(self, width: float, height: float) -> None:
+        """The target is a width x height rectangle (m) in the gate plane, not a ring."""
+        self.rect = (0.5 * float(width), 0.5 * float(height))
 
     def use_detector_noise(self, noise: DetectorNoise) -> None:
         """Opt in to the detector-like box error (``sim.camera.noise_model: detector``) instead of white noise."""
@@ -137,6 +156,8 @@ class GeometricCamera:
         ab = (radius * _rim_basis(tuple(float(x) for x in normal))) @ R_cam_world.T  # rim = c + a cos + b sin
         a, b = ab[0], ab[1]
         K = m.K
+        if self.rect is not None:
+            return self._rect_box(c, _rim_basis(tuple(float(x) for x in normal)) @ R_cam_world.T, t)
         if not self._distorted and K[0, 1] == 0.0 and c[2] - math.hypot(a[2], b[2]) > 1e-3:
             # Whole ring in front of an undistorted camera: exact extent of the projected circle.
             fx, cx, fy, cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
@@ -176,21 +197,48 @@ class GeometricCamera:
             return None
         return BoundingBox.from_xyxy(u0, v0, u1, v1, 1.0, t)
 
+    def _rect_box(self, c: np.ndarray, uv: np.ndarray, t: float) -> BoundingBox | None:
+        """Box of the rectangle c +- hw u +- hh v (camera frame; u horizontal, v vertical in the plane)."""
+        m = self.model
+        hw, hh = self.rect  # type: ignore[misc]
+        outline = c + _RECT_UNIT * np.array([hw, hh]) @ uv  # cyclic samples along the four edges
+        front = outline[:, 2] > 1e-3
+        if not self.clip:
+            cu, cv = self.project(c[None, :])[0]
+            if not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height) or front.sum() < 3:
+                return None
+            px = self.project(outline[front])
+            lo, hi = px.min(axis=0), px.max(axis=0)
+            if hi[0] - lo[0] < self.min_box or hi[1] - lo[1] < self.min_box:
+                return None
+            return BoundingBox(float(cu), float(cv), float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1.0, t)
+        vis = self._outline_extent(outline)
+        if vis is None:
+            return None
+        u0, v0, u1, v1 = vis
+        if u1 - u0 < self.min_box or v1 - v0 < self.min_box:
+            return None
+        return BoundingBox.from_xyxy(u0, v0, u1, v1, 1.0, t)
+
     def _visible_extent(self, c: np.ndarray, ab: np.ndarray) -> tuple[float, float, float, float] | None:
         """Pixel extent of the rim inside the image: each chord between rim samples (both in front of the
         camera) clipped to the image rectangle (Liang-Barsky), then the extent of what is left."""
-        rim = c + _COS_SIN_FINE @ ab
+        return self._outline_extent(c + _COS_SIN_FINE @ ab)
+
+    def _outline_extent(self, rim: np.ndarray) -> tuple[float, float, float, float] | None:
+        """Pixel extent inside the image of a closed outline (camera-frame samples, in order)."""
+        nxt = np.roll(np.arange(rim.shape[0]), -1)
         front = rim[:, 2] > 1e-3
         if front.all():
             px = self.project(rim)
-            p0, p1 = px, px[_NEXT_FINE]
+            p0, p1 = px, px[nxt]
         else:
             if front.sum() < 2:
                 return None
             px = np.zeros((rim.shape[0], 2))
             px[front] = self.project(rim[front])
-            both = front & front[_NEXT_FINE]  # chords with both ends in front of the camera
-            p0, p1 = px[both], px[_NEXT_FINE][both]
+            both = front & front[nxt]  # chords with both ends in front of the camera
+            p0, p1 = px[both], px[nxt][both]
             if p0.shape[0] == 0:
                 return None
         d = p1 - p0

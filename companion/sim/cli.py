@@ -25,7 +25,7 @@ from companion.app.session import StartRefused, fly
 from companion.config import add_config_arguments, config_from_args
 from companion.px4sitl.run import add_px4_arguments, run_px4_sim
 from companion.sim.appflight import print_flight_report, sim_overrides
-from companion.sim.gates import MOTIONS
+from companion.sim.gates import ALL_MOTIONS
 from companion.sim.process import SimPX4Process
 from companion.sim.runner import CAMERAS, CONTROLLERS, RunSpec, run_once
 
@@ -33,7 +33,7 @@ from companion.sim.runner import CAMERAS, CONTROLLERS, RunSpec, run_once
 def add_in_process_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--in-process", action="store_true",
                    help="fly the in-process simulator (dynamics + geometric camera + controller in one loop)")
-    p.add_argument("--motion", choices=MOTIONS, default=None,
+    p.add_argument("--motion", choices=ALL_MOTIONS, default=None,
                    help="gate motion (default: planar in-process, app.synthetic.motion otherwise)")
     p.add_argument("--seed", type=int, default=0, help="run seed (initial condition, noise)")
     p.add_argument("--controller", choices=CONTROLLERS, default="pn",
@@ -108,7 +108,9 @@ def cmd_in_process(args: argparse.Namespace) -> int:
         print(f"{args.motion} seed {args.seed}: crossed the gate plane at t = {o.t_gate:.2f} s, "
               f"d_center = {o.d_center:.2f} m, top speed {o.top_speed:.1f} m/s")
     else:
-        print(f"{args.motion} seed {args.seed}: failed ({o.reason}) after {res.sim_time:.2f} s")
+        why = o.reason or "no crossing of the target's plane"  # a pull-up that stayed clear ends without one
+        print(f"{args.motion} seed {args.seed}: failed ({why}) after {res.sim_time:.2f} s" if o.reason else
+              f"{args.motion} seed {args.seed}: {why} after {res.sim_time:.2f} s")
     if d["max_tilt_deg"] is not None:
         osc = "" if d["roll_osc_amp_deg"] is None else (
             f", roll-setpoint oscillation {d['roll_osc_amp_deg']:.1f} deg at {d['roll_osc_freq_hz']:.2f} Hz "
@@ -116,6 +118,11 @@ def cmd_in_process(args: argparse.Namespace) -> int:
         print(f"commanded: max tilt {d['max_tilt_deg']:.1f} deg{osc}")
     if res.engagement is not None:  # the engagement protocol: how the app's decisions ended
         print(f"engagement: {res.engagement['end']}, pass {res.engagement['pass_status'] or 'none'}")
+    if res.pullup is not None and res.pullup["pulled_up"]:  # on_close=pull_up: scored by truth
+        pu = res.pullup
+        miss = "-" if pu["predicted_miss_m"] is None else f"{pu['predicted_miss_m']:.2f} m"
+        print(f"pull-up at t = {pu['t_pullup_s']:.2f} s ({pu['speed_at_pullup_mps']:.1f} m/s): predicted miss {miss}, "
+              f"cleared the target by {pu['clearance_m']:.2f} m")
     print("success by gate radius: " + ", ".join(f"{k} m: {'yes' if v else 'no'}" for k, v in d["success"].items()))
     if args.json is not None:
         args.json.write_text(json.dumps(d, indent=1))

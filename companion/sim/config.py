@@ -123,6 +123,31 @@ class GateMotionConfig(Section):
     d_knot: Meters = Field(1.0, gt=0.0, le=100.0)
     planar_top_speed: MetersPerSecond = Field(3.1, gt=0.0, le=50.0)
     knot_top_speed: MetersPerSecond = Field(1.2, gt=0.0, le=50.0)
+    recede_speed: MetersPerSecond = Field(
+        9.0, ge=0.0, le=50.0, description="motion recede: speed away from the vehicle along the normal (the paper's "
+        "truck: 8-10 m/s)")
+    sinusoid_amplitude: Meters = Field(
+        0.95, ge=0.0, le=100.0, description="motion sinusoid: lateral amplitude, m (0.95 m at 0.5 Hz peaks at 3 m/s)")
+    sinusoid_frequency: Hertz = Field(0.5, gt=0.0, le=20.0, description="motion sinusoid: frequency, Hz")
+
+
+class SimTargetConfig(Section):
+    """What the camera sees: a ring, a square or a rectangle, in the air or standing on the ground."""
+
+    shape: Literal["ring", "square", "rectangle"] = Field(
+        "ring", description="ring: a circle of diameter width; square: width x width; rectangle: width x height")
+    width: Meters | None = Field(
+        None, gt=0.05, le=100.0, description="target width (ring: diameter), m; default 2 x scenario.visual_radius")
+    height: Meters | None = Field(None, gt=0.05, le=100.0, description="rectangle height, m; default the width")
+    on_ground: bool = Field(
+        False, description="stand on the ground (bottom edge at z = 0) instead of floating near the start altitude")
+
+    def size(self, visual_radius: float) -> tuple[float, float]:
+        """(width, height) in metres of the target the camera sees."""
+        w = self.width if self.width is not None else 2.0 * visual_radius
+        if self.shape == "rectangle":
+            return w, (self.height if self.height is not None else w)
+        return w, w
 
 
 class ScenarioConfig(Section):
@@ -163,5 +188,6 @@ class SimConfig(Section):
     sensors: SensorsConfig = SensorsConfig()
     camera: SimCameraConfig = SimCameraConfig()
     gates: GateMotionConfig = GateMotionConfig()
+    target: SimTargetConfig = SimTargetConfig()
     scenario: ScenarioConfig = ScenarioConfig()
     baseline: BaselineConfig = BaselineConfig()

@@ -9,6 +9,10 @@ knot adds +-d_knot vertically. Linear motions move along ``x_M`` (sideways, sign
 ``omega`` is solved so the top speed equals the configured one (paper: 3.1 m/s planar, 1.2 m/s
 knot); :func:`motion_extremes` reports the resulting peak accelerations. Gates only translate:
 the gate plane's normal is fixed (assumption 2 of the paper).
+
+Beyond the paper's five (``MOTIONS``), two motions of a target a user would test (``ALL_MOTIONS``):
+``recede`` drives away along the normal (away from the vehicle) at ``recede_speed`` (the paper's truck,
+section end-to-end experiment), ``sinusoid`` swings sideways, ``x = A sin(2 pi f t + phase)`` (an evasive gate).
 """
 
 from __future__ import annotations
@@ -20,8 +24,9 @@ from typing import Literal
 
 import numpy as np
 
-MotionKind = Literal["stationary", "linear_slow", "linear_fast", "planar", "knot"]
-MOTIONS: tuple[MotionKind, ...] = ("stationary", "linear_slow", "linear_fast", "planar", "knot")
+MotionKind = Literal["stationary", "linear_slow", "linear_fast", "planar", "knot", "recede", "sinusoid"]
+MOTIONS: tuple[MotionKind, ...] = ("stationary", "linear_slow", "linear_fast", "planar", "knot")  # the paper's
+ALL_MOTIONS: tuple[MotionKind, ...] = (*MOTIONS, "recede", "sinusoid")
 
 
 def planar_shape(u: np.ndarray | float) -> np.ndarray:
@@ -112,6 +117,10 @@ class GateMotion:
             return self.p0.copy()
         if self.kind in ("linear_slow", "linear_fast"):
             return self.p0 + self.R_world_motion[:, 0] * (self.speed * t)
+        if self.kind == "recede":  # away from the vehicle: against the normal (which points at the vehicle)
+            return self.p0 - self.normal * (self.speed * t)
+        if self.kind == "sinusoid":
+            return self.p0 + self.R_world_motion[:, 0] * (self.amplitude * math.sin(self.omega * t + self.phase))
         u = self.omega * t + self.phase
         # Scalar math (this runs every frame); the same formulas as planar_shape / knot_shape.
         if self.kind == "planar":
@@ -127,12 +136,19 @@ class GateMotion:
             return np.zeros(3)
         if self.kind in ("linear_slow", "linear_fast"):
             return self.R_world_motion[:, 0] * self.speed
+        if self.kind == "recede":
+            return -self.normal * self.speed
+        if self.kind == "sinusoid":
+            return self.R_world_motion[:, 0] * (self.amplitude * self.omega * math.cos(self.omega * t + self.phase))
         _, d1, _ = _SHAPES[self.kind]
         return self.R_world_motion @ (self.amplitude * self.omega * d1(self.omega * t + self.phase))
 
     def acceleration(self, t: float) -> np.ndarray:
-        if self.kind in ("stationary", "linear_slow", "linear_fast"):
+        if self.kind in ("stationary", "linear_slow", "linear_fast", "recede"):
             return np.zeros(3)
+        if self.kind == "sinusoid":
+            return self.R_world_motion[:, 0] * (-self.amplitude * self.omega**2
+                                                * math.sin(self.omega * t + self.phase))
         _, _, d2 = _SHAPES[self.kind]
         return self.R_world_motion @ (self.amplitude * self.omega**2 * d2(self.omega * t + self.phase))
 
@@ -160,8 +176,8 @@ def make_gate(
     planar/knot (p0 is then placed so the trajectory passes through ``start_position`` at t = 0).
     ``gates_cfg`` is a ``GateMotionConfig``.
     """
-    if kind not in MOTIONS:
-        raise ValueError(f"unknown gate motion {kind!r} (use one of: {', '.join(MOTIONS)})")
+    if kind not in ALL_MOTIONS:
+        raise ValueError(f"unknown gate motion {kind!r} (use one of: {', '.join(ALL_MOTIONS)})")
     R = motion_frame(np.asarray(normal, dtype=float))
     n = R[:, 1].copy()
     start = np.asarray(start_position, dtype=float)
@@ -171,6 +187,13 @@ def make_gate(
         speed = gates_cfg.linear_slow_speed if kind == "linear_slow" else gates_cfg.linear_fast_speed
         sign = 1.0 if rng.random() < 0.5 else -1.0
         return GateMotion(kind, start, n, R, speed=sign * speed)
+    if kind == "recede":
+        return GateMotion(kind, start, n, R, speed=gates_cfg.recede_speed)
+    if kind == "sinusoid":
+        # Random start phase; p0 is the swing's centre, placed so the gate is at start_position at t = 0.
+        a, w = gates_cfg.sinusoid_amplitude, 2 * math.pi * gates_cfg.sinusoid_frequency
+        phase = float(rng.uniform(0.0, 2 * math.pi))
+        return GateMotion(kind, start - R[:, 0] * (a * math.sin(phase)), n, R, amplitude=a, omega=w, phase=phase)
     amp = gates_cfg.d_plan if kind == "planar" else gates_cfg.d_knot
     top = gates_cfg.planar_top_speed if kind == "planar" else gates_cfg.knot_top_speed
     w = omega_for_top_speed(kind, amp, top)

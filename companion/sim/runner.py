@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from companion.configbase import deep_merge
 from companion.core import FlightCore, FrameInput, ImuReading
@@ -33,9 +34,9 @@ from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscilla
 from companion.reasons import Reason
 from companion.sim.camera import GeometricCamera, detector_noise, true_camera_config
 from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
-from companion.sim.gates import MOTIONS, MotionKind
+from companion.sim.gates import ALL_MOTIONS, MOTIONS, MotionKind
 from companion.sim.scenario import Scenario, make_scenario
-from companion.sim.scoring import PlaneCrossingScorer, RunOutcome
+from companion.sim.scoring import PlaneCrossingScorer, PullUpScorer, RunOutcome
 from companion.sim.sensors import Sensors, Wind
 
 if TYPE_CHECKING:
@@ -99,6 +100,7 @@ class RunResult:
     max_tilt_deg: float = math.nan  # largest commanded tilt over the engagement (companion.metrics)
     roll_osc: Oscillation = NO_OSCILLATION  # roll-setpoint oscillation over the engagement
     engagement: dict[str, Any] | None = None  # engagement protocol: how it ended, the pass's status
+    pullup: dict[str, Any] | None = None  # on_close=pull_up: predicted miss, clearance (PullUpScorer)
 
     def as_dict(self, radii: list[float]) -> dict[str, Any]:
         d = {**asdict(self.spec), "distance_m": self.distance, "angle_deg": self.angle,
@@ -110,6 +112,8 @@ class RunResult:
         d.update({k: (v if math.isfinite(v) else None) for k, v in metrics.items()})
         if self.engagement is not None:
             d.update({f"engagement_{k}": v for k, v in self.engagement.items()})
+        if self.pullup is not None:
+            d.update({f"pullup_{k}": v for k, v in self.pullup.items()})
         return d
 
 
@@ -204,6 +208,9 @@ class _BaselineOut:
 _END_REASONS = {Reason.OK: "handback", Reason.NO_TARGET: "no_target", Reason.TARGET_LOST: "target_lost",
                 Reason.MAX_ENGAGEMENT: "max_engagement", Reason.ALTITUDE_FLOOR: "altitude_floor"}
 POST_CROSSING_S = 1.5  # s flown after the crossing at most while the engagement is still before RECOVER
+# After a pull-up's handback the run goes on this long with PX4's Hold approximated by a level hover setpoint (it
+# keeps the forward speed where Hold would brake: the pessimistic side for the clearance over the target).
+POST_PULLUP_S = 2.0
 
 
 def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
@@ -215,8 +222,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     protocol (the paper's V-A): the controller alone, boxes centred on the gate, until the crossing,
     fov_lost, ground or timeout. Either way the gate-plane crossing from ground truth scores the run.
     """
-    if spec.motion not in MOTIONS:
-        raise ValueError(f"run: unknown gate motion {spec.motion!r} (use one of: {', '.join(MOTIONS)})")
+    if spec.motion not in ALL_MOTIONS:
+        raise ValueError(f"run: unknown gate motion {spec.motion!r} (use one of: {', '.join(ALL_MOTIONS)})")
     if spec.controller not in CONTROLLERS:
         raise ValueError(f"run: unknown controller {spec.controller!r} (use one of: {', '.join(CONTROLLERS)})")
     if spec.camera not in CAMERAS:
@@ -229,7 +236,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     ss = np.random.SeedSequence([sim.seed, spec.seed])
     rng_scn, rng_cam, rng_sens, rng_wind = (np.random.default_rng(s) for s in ss.spawn(4))
     params = QuadParams.from_config(cfg)
-    scn: Scenario = make_scenario(spec.motion, rng_scn, sim.scenario, sim.gates, params)
+    tw, th = sim.target.size(sim.scenario.visual_radius)
+    scn: Scenario = make_scenario(spec.motion, rng_scn, sim.scenario, sim.gates, params,
+                                  ground_centre=0.5 * th if sim.target.on_ground else None)
     gate = scn.gate
     quad = Quadrotor(params, scn.state0)
     from perception.los import CameraModel
@@ -245,16 +254,23 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                          sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box or engaged)
     if sim.camera.noise_model == "detector" and isinstance(camera, GeometricCamera):
         camera.use_detector_noise(detector_noise(cfg, rng_cam))
+    if sim.target.shape != "ring":
+        if not isinstance(camera, GeometricCamera):
+            raise ValueError(f"run: the rendered camera draws rings only (sim.target.shape {sim.target.shape!r})")
+        camera.use_rectangle(tw, th)
     sensors = Sensors(sim.sensors, rng_sens)
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)
     core = FlightCore.from_config(cfg, controller=steer) if engaged else None
     eng = core.engagement if core is not None else None
     scorer = PlaneCrossingScorer(gate.normal)
+    pulling = eng is not None and cfg.app.on_close == "pull_up"
+    pull_scorer = PullUpScorer(gate.normal, 0.5 * tw, 0.5 * th) if pulling else None
+    hold_end: float | None = None  # pull-up handed back: PX4 Hold (approximated) until then
 
     dt = 1.0 / cfg.camera.rate
     delay = sim.camera.delay
-    radius = sim.scenario.visual_radius
+    radius = 0.5 * tw  # a ring's; a rectangle's size is the camera's own (use_rectangle)
     timeout, fov_timeout = sim.scenario.timeout, sim.scenario.fov_timeout
     # Until the first setpoint, PX4 would hold the last one: the cruise trim.
     q_cmd = scn.state0.q.copy()
@@ -286,9 +302,23 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         if crossing is None:
             crossing = scorer.update(t, s.p, g)
             t_cross = t
-        if crossing is not None and (eng is None or eng.phase in (Phase.RECOVER,) or eng.phase.done
-                                     or t - t_cross > POST_CROSSING_S):
+        if pull_scorer is not None:
+            pulled = bool(eng is not None and eng.passes and eng.passes[0].status == "pulled_up")
+            pull_scorer.update(t, s.p, s.v, g, gate.velocity(t), pulled)
+        if crossing is not None and not pulling and (
+                eng is None or eng.phase in (Phase.RECOVER,) or eng.phase.done or t - t_cross > POST_CROSSING_S):
             break
+        if hold_end is not None:
+            if t > hold_end or s.ground_contact or s.on_ground:
+                if s.ground_contact or s.on_ground:
+                    outcome = RunOutcome(False, None, None, "ground")
+                break
+            x = quat_to_matrix(s.q)[:, 0]
+            q_cmd = Rotation.from_euler("z", math.atan2(x[1], x[0])).as_quat()
+            thrust_cmd = params.hover_thrust
+            quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+            k += 1
+            continue
         if s.ground_contact or (s.on_ground and k > 0):
             outcome = RunOutcome(False, None, None, "ground")
             break
@@ -334,6 +364,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                 last_out = d.control if d.control is not None else last_out
                 if d.phase.done:
                     end = f"{d.phase.value} {d.reason.name if d.reason else ''}".strip()
+                    if pulling and d.reason is Reason.OK:
+                        hold_end = t + POST_PULLUP_S
+                        break
                     if crossing is None:
                         outcome = RunOutcome(False, None, None, _END_REASONS.get(d.reason, "handback"))
                     break
@@ -364,8 +397,10 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.baro.append(sensors.baro_altitude(float(s.p[2]), rng_rec))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
-    if crossing is not None:
+    if crossing is not None and (outcome is None or not pulling):
         outcome = crossing  # ground truth scores the run, whatever the engagement did after
+    if outcome is None:  # a pull-up handed back and held without crossing the target's plane
+        outcome = RunOutcome(False, None, None, None)
     assert outcome is not None
     outcome.top_speed = top_speed
     info = None
@@ -375,7 +410,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                 "t_close_s": first.t_close if first else None}
     return RunResult(spec, outcome, scn.distance, scn.angle, scn.altitude, k * dt, frames, frames_with_box, traj,
                      max_tilt_deg(np.array(sp_roll), np.array(sp_pitch)),
-                     oscillation(np.array(sp_t), np.array(sp_roll)), info)
+                     oscillation(np.array(sp_t), np.array(sp_roll)), info,
+                     pull_scorer.as_dict() if pull_scorer is not None else None)
 
 
 def bench_sim(seconds: float = 60.0, cfg: Config | None = None) -> dict[str, float]:

@@ -10,7 +10,9 @@ Geometry (decisions where the paper is silent):
 * the start attitude is the cruise trim for that velocity: thrust axis along g + drag, camera
   (body x) yawed at the gate, so the first frame sees it; thrust at the trim value;
 * gate motions per companion/sim/gates.py (linear: sideways in the gate plane, random sign;
-  planar/knot: random start phase, the trajectory placed through the gate's start position).
+  planar/knot: random start phase, the trajectory placed through the gate's start position);
+* a target standing on the ground (``sim.target.on_ground``) has its centre at half its height above z = 0
+  instead (the draw of the height offset is still made, so other draws do not shift).
 """
 
 from __future__ import annotations
@@ -53,8 +55,10 @@ def make_scenario(
     scenario_cfg: object,
     gates_cfg: object,
     params: QuadParams,
+    ground_centre: float | None = None,
 ) -> Scenario:
-    """Draw one initial condition. ``scenario_cfg``/``gates_cfg``: ScenarioConfig / GateMotionConfig."""
+    """Draw one initial condition. ``scenario_cfg``/``gates_cfg``: ScenarioConfig / GateMotionConfig;
+    ``ground_centre``: the target stands on the ground with its centre this high (m), else None."""
     sc = scenario_cfg
     if sc.distance_max < sc.distance_min or sc.altitude_max < sc.altitude_min:
         raise ValueError("sim.scenario: *_max must be >= *_min")
@@ -66,6 +70,8 @@ def make_scenario(
     e = np.array([math.cos(bearing), math.sin(bearing), 0.0])
     p_vehicle = np.array([0.0, 0.0, h])
     p_gate = p_vehicle + d * e + np.array([0.0, 0.0, dz])
+    if ground_centre is not None:
+        p_gate[2] = ground_centre
     gate = make_gate(motion, p_gate, -e, rng=rng, gates_cfg=gates_cfg)
     b = bearing + math.radians(alpha)
     v0 = sc.speed * np.array([math.cos(b), math.sin(b), 0.0])
