@@ -17,6 +17,7 @@ import numpy as np
 from pydantic import Field, ValidationError, model_validator
 from scipy.spatial.transform import Rotation
 
+from companion.cameramodel import distortion_problem
 from companion.config_app import AppConfig, LinkConfig, LogConfig, SafetyConfig
 from companion.config_perception import PerceptionConfig
 from companion.configbase import (
@@ -108,6 +109,9 @@ class CameraConfig(Section):
         for name, c, size in (("cx", self.cx, self.width), ("cy", self.cy, self.height)):
             if c is not None and not 0.0 <= c <= size:
                 raise ValueError(f"{name} {c} lies outside the image (0..{size} px)")
+        problem = distortion_problem(self.K, self.dist, self.width, self.height)
+        if problem:
+            raise ValueError(f"distortion {list(self.distortion)}: {problem}")
         return self
 
     @property
