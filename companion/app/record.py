@@ -213,9 +213,44 @@ def add_record_arguments(p: Any) -> None:
                    help="stop recording after this many MB (default 4000); it also stops when the disk is nearly full")
 
 
+MAX_RECORD_MB = 10_000_000.0  # 10 TB: a larger budget is a typo (and inf overflowed int())
+MIN_RECORD_BYTES = 10 * 1024 * 1024  # room for the first few hundred frames beyond the free margin
+
+
+def check_record_target(folder: str | Path, free_margin: int = FREE_MARGIN_BYTES) -> None:
+    """Refuse, before anything is made or flown, a --record folder that cannot take a recording: not a
+    folder (/dev/null, a file), not writable, or on a disk with too little free space (the recorder would
+    stop at its first frame while the flight goes on). RecordError, one line."""
+    import os
+
+    p = Path(folder)
+    if p.exists() and not p.is_dir():
+        raise RecordError(f"--record {folder}: not a folder")
+    probe = p
+    while not probe.exists():  # the nearest existing ancestor is where the folder will be made
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise RecordError(f"--record {folder}: {probe} is not a writable folder")
+    free = shutil.disk_usage(probe).free
+    if free < free_margin + MIN_RECORD_BYTES:
+        raise RecordError(f"--record {folder}: {free / 1e6:.0f} MB free on its disk; recording needs more than "
+                          f"{(free_margin + MIN_RECORD_BYTES) / 1e6:.0f} MB (it always leaves "
+                          f"{free_margin / 1e6:.0f} MB free for the flight log)")
+
+
 def record_kwargs(args: Any) -> dict[str, Any]:
+    """Recorder options from the command line, checked (ConfigError, one line) before anything starts."""
+    import math
+
     from companion.configbase import ConfigError
 
-    if getattr(args, "record", None) and not args.record_max_mb > 0:
-        raise ConfigError(f"--record-max-mb {args.record_max_mb}: must be > 0")
-    return {"fmt": args.record_format, "max_bytes": int(args.record_max_mb * 1e6)}
+    if not getattr(args, "record", None):
+        return {"fmt": args.record_format, "max_bytes": int(4000.0 * 1e6)}
+    mb = args.record_max_mb
+    if not (math.isfinite(mb) and 0 < mb <= MAX_RECORD_MB):
+        raise ConfigError(f"--record-max-mb {mb}: must be a number > 0 and <= {MAX_RECORD_MB:g}")
+    try:
+        check_record_target(args.record)
+    except RecordError as e:
+        raise ConfigError(str(e)) from None
+    return {"fmt": args.record_format, "max_bytes": int(mb * 1e6)}
