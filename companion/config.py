@@ -52,7 +52,8 @@ class AirframeConfig(Section):
     )
     thrust_to_weight: Number = Field(2.0, gt=1.05, le=10.0, description="max collective thrust / weight")
     thrust_min: Number = Field(
-        0.1, gt=0.0, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls)"
+        0.1, ge=0.01, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls; >= 0.01: "
+        "below, the command is zero in all but name)"
     )
     max_tilt: Deg = Field(
         50.0, ge=10.0, le=80.0, description="flight envelope: largest commanded tilt of the thrust axis from vertical"
