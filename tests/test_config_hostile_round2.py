@@ -69,3 +69,16 @@ def test_one_lock_per_serial_device_however_it_is_reached(tmp_path):
     assert lock_name("serial:///dev/zero:57600") not in names  # another device, another lock
     with VehicleLock("serial:///dev/null:57600", tmp_path), pytest.raises(VehicleBusy, match="another companion app"):
         VehicleLock(f"serial://{tmp_path}/by-id/usb-PX4_FMU:921600", tmp_path).acquire()
+
+
+def test_an_absurd_distortion_is_refused_where_the_camera_is_loaded(tmp_path):
+    cam = tmp_path / "camera.yaml"
+    cam.write_text("camera:\n  distortion: [50, -3000, .5, .5, 1e6]\n")
+    res = _check("--no-detector", "--config", str(cam))
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
+    assert "camera: distortion" in res.stderr and "not a real lens" in res.stderr, res.stderr
+    cam.write_text("camera:\n  distortion: [50, -3000, 0, 0, 1e6]\n")  # the radial part alone: squeezes the view
+    with pytest.raises(ConfigError, match="implausible: the distortion moves pixels"):
+        load_config([cam])
+    cam.write_text("camera:\n  distortion: [-0.15, 0.04, 0.001, -0.0008, 0.0]\n")  # a real webcam lens
+    assert load_config([cam]).camera.distortion[0] == -0.15
