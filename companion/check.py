@@ -12,7 +12,7 @@ import argparse
 from typing import Any
 
 from companion.app.preflight import summary_lines
-from companion.configbase import ConfigError
+from companion.configbase import ConfigError, printable
 
 
 def register(subparsers: Any) -> None:
@@ -45,9 +45,9 @@ def _cmd_check(args: argparse.Namespace) -> int:
         det = f"loads ({model_path(cfg.perception, real_frames(cfg)).name})"
     elif args.no_detector:
         det = "not checked (--no-detector)"
-    print(f"config OK: {', '.join(['config/default.yaml', *files])}" + (
-        f" + {len(args.overrides)} --set" if args.overrides else ""))
+    print(printable(f"config OK: {', '.join(['config/default.yaml', *files])}" + (
+        f" + {len(args.overrides)} --set" if args.overrides else "")))
     for line in [*summary_lines(cfg), f"detector: {det}"]:
-        print("  " + line)
+        print("  " + printable(line))  # config text (a source, a path) may hold terminal escapes
     return 0
 

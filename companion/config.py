@@ -17,6 +17,7 @@ import numpy as np
 from pydantic import Field, ValidationError, model_validator
 from scipy.spatial.transform import Rotation
 
+from companion.cameramodel import distortion_problem
 from companion.config_app import AppConfig, LinkConfig, LogConfig, SafetyConfig
 from companion.config_perception import PerceptionConfig
 from companion.configbase import (
@@ -51,7 +52,8 @@ class AirframeConfig(Section):
     )
     thrust_to_weight: Number = Field(2.0, gt=1.05, le=10.0, description="max collective thrust / weight")
     thrust_min: Number = Field(
-        0.1, gt=0.0, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls)"
+        0.1, ge=0.01, lt=0.5, description="lowest normalised thrust ever sent (never 0: a quad at 0 falls; >= 0.01: "
+        "below, the command is zero in all but name)"
     )
     max_tilt: Deg = Field(
         50.0, ge=10.0, le=80.0, description="flight envelope: largest commanded tilt of the thrust axis from vertical"
@@ -108,6 +110,9 @@ class CameraConfig(Section):
         for name, c, size in (("cx", self.cx, self.width), ("cy", self.cy, self.height)):
             if c is not None and not 0.0 <= c <= size:
                 raise ValueError(f"{name} {c} lies outside the image (0..{size} px)")
+        problem = distortion_problem(self.K, self.dist, self.width, self.height)
+        if problem:
+            raise ValueError(f"distortion {list(self.distortion)}: {problem}")
         return self
 
     @property

@@ -20,12 +20,30 @@ def all_interfaces_reason(url: str) -> str | None:
     u = url.strip().lower()
     if u.startswith("udpout://"):
         return "makes mavsdk bind 0.0.0.0 (every interface) on a random port"
+    if u.startswith("tcpout://"):
+        # An outgoing link off this machine carries the vehicle's commands over the network (MAVLink has no
+        # authentication): the same rule as a link that listens on it.
+        host = u[len("tcpout://"):].rsplit(":", 1)[0].strip("[]")
+        if not _loopback(host):
+            return f"connects to {host or '<no host>'}, off this machine (MAVLink over the network, unauthenticated)"
+        return None
     for scheme in ("udpin://", "tcpin://", "udp://", "tcp://"):
         if u.startswith(scheme):
             host = u[len(scheme):].rsplit(":", 1)[0]
             if host in ("", "0.0.0.0", "[::]", "::"):
                 return "listens on every network interface"
     return None
+
+
+def _loopback(host: str) -> bool:
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name: where it resolves is not known here, so not "this machine"
 
 
 class LinkConfig(Section):
@@ -48,7 +66,8 @@ class LinkConfig(Section):
     system_id: int = Field(1, ge=1, le=255, description="MAVLink system id of the autopilot (PX4 MAV_SYS_ID)")
     component_id: int = Field(1, ge=1, le=255, description="MAVLink component id of the autopilot (PX4: 1)")
     allow_all_interfaces: bool = Field(
-        False, description="allow a link that listens on every network interface (udpout://, udpin://0.0.0.0, udp://:)"
+        False, description="allow a link that listens on every network interface (udpout://, udpin://0.0.0.0, udp://:) "
+        "or connects to another host (tcpout:// off loopback)"
     )
     events_metadata: str = Field(
         "", description="PX4 event metadata (all_events.json[.xz]); empty: the PX4 v1.15 file shipped with the app"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import stat
 from typing import Literal
 
 from pydantic import Field, model_validator
@@ -101,4 +103,25 @@ class PerceptionConfig(Section):
     def _check(self) -> PerceptionConfig:
         if self.tracker == "nanotrack" and not (self.nanotrack_backbone and self.nanotrack_neckhead):
             raise ValueError("tracker: nanotrack needs nanotrack_backbone and nanotrack_neckhead (two ONNX files)")
+        for key in ("model", "nanotrack_backbone", "nanotrack_neckhead"):
+            kind = _not_a_file(getattr(self, key))
+            if kind:
+                raise ValueError(f"{key} {getattr(self, key)}: {kind}, not a model file")
         return self
+
+
+def _not_a_file(path: str) -> str | None:
+    """What a model path that exists is when it is not a regular file (None: a file, or not there: the
+    detector resolves shipped names and says "not found" itself)."""
+    if not path:
+        return None
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    for test, what in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return what
+    return None if stat.S_ISREG(mode) else "not a regular file"

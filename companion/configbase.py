@@ -46,8 +46,18 @@ _QUANTITY_RE = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([
 _NUMBER_RE = re.compile(r"^\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*$")
 
 
+def printable(text: str) -> str:
+    """Control characters (ANSI escapes, newlines, NUL, DEL, C1) as visible escapes: a value echoed back from
+    a command line or a file can neither drive the terminal nor break the one-line error into several."""
+    return "".join(ch if ch.isprintable() or ch == " " else ascii(ch)[1:-1] for ch in text)
+
+
 class ConfigError(ValueError):
-    """A configuration problem, already formatted as one line: file, key, value, what is wrong."""
+    """A configuration problem, already formatted as one line: file, key, value, what is wrong (any control
+    character in it escaped)."""
+
+    def __init__(self, message: object = "") -> None:
+        super().__init__(printable(str(message)))
 
 
 def _quantity(kind: str):

@@ -30,12 +30,12 @@ from __future__ import annotations
 import contextlib
 import csv
 import datetime as dt
-import io
 import json
 import math
 import os
 import shutil
 import socket
+import stat
 import sys
 import time
 from collections.abc import Iterable, Mapping, Sequence
@@ -382,21 +382,67 @@ def _column(values: list[str]) -> np.ndarray:
         return np.array(values, dtype=object)
 
 
+# Bounds for reading: a flight's own topics stay far below (telemetry at 20 Hz is ~40 MB per hour); a bigger
+# file, a device (/dev/zero), a FIFO (blocks forever) or a folder is not a flight log and is refused unread.
+MAX_TOPIC_BYTES = 256 * 1024 * 1024
+MAX_JSON_BYTES = 16 * 1024 * 1024
+MAX_FIELD_BYTES = 128 * 1024  # csv's own limit: a longer field is refused with its line, not a traceback
+# Files the log tools themselves write into a flight folder (everything else there is the raw log).
+TOOL_PRODUCTS = frozenset({"flight.csv", "plot.png"})
+
+
+def _readable(path: Path, limit: int) -> None:
+    """Refuse, unread, what is not a regular file of at most ``limit`` bytes (ValueError, one line)."""
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read ({e.strerror or e})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise ValueError(f"{path}: not a regular file (a FIFO, device or folder is not a flight-log file)")
+    if st.st_size > limit:
+        raise ValueError(f"{path}: {st.st_size / 1e6:.0f} MB, more than the {limit / 1e6:.0f} MB a flight-log file "
+                         "may have")
+
+
 def read_table(path: str | Path) -> Table:
     """Read one topic CSV, dropping a last line cut short by a kill."""
-    text = Path(path).read_text(encoding="utf-8", errors="replace")
-    truncated = 0
-    if text and not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]  # the unfinished last line
-        truncated = 1
-    rows = list(csv.reader(io.StringIO(text)))
-    if not rows:
-        raise ValueError(f"{path}: empty flight-log file (no header)")
-    header = tuple(rows[0])
-    body = [r for r in rows[1:] if len(r) == len(header)]
-    truncated += len(rows) - 1 - len(body)
-    data = {c: _column([r[i] for r in body]) for i, c in enumerate(header)}
-    return Table(header, data, truncated)
+    path = Path(path)
+    _readable(path, MAX_TOPIC_BYTES)
+    with open(path, "rb") as fb:
+        size = fb.seek(0, os.SEEK_END)
+        cut = False
+        if size:
+            fb.seek(-1, os.SEEK_END)
+            cut = fb.read(1) != b"\n"
+    # Streamed, column by column: the file is never held as text and as a list of every row's cells at once.
+    with open(path, encoding="utf-8", errors="replace", newline="") as f:
+        reader = csv.reader(f)
+        try:
+            header = tuple(next(reader))
+        except StopIteration:
+            raise ValueError(f"{path}: empty flight-log file (no header)") from None
+        except csv.Error as e:
+            raise ValueError(f"{path}: line 1: not a flight-log CSV ({e})") from None
+        cols: list[list[str]] = [[] for _ in header]
+        seen, last_kept = 0, False
+        while True:
+            try:
+                r = next(reader)
+            except StopIteration:
+                break
+            except csv.Error as e:
+                raise ValueError(f"{path}: line {reader.line_num}: not a flight-log CSV ({e})") from None
+            seen += 1
+            last_kept = len(r) == len(header)
+            if last_kept:
+                for c, v in zip(cols, r, strict=True):
+                    c.append(v)
+    if cut and seen and last_kept:  # the unfinished last line, complete in cell count but cut short
+        for c in cols:
+            c.pop()
+    n = len(cols[0]) if cols else 0
+    data = {c: _column(v) for c, v in zip(header, cols, strict=True)}
+    return Table(header, data, seen - n)
 
 
 def read_flight(folder: str | Path, topics: Iterable[str] | None = None) -> Flight:
@@ -409,6 +455,7 @@ def read_flight(folder: str | Path, topics: Iterable[str] | None = None) -> Flig
         p = folder / name
         if not p.exists():
             return {}
+        _readable(p, MAX_JSON_BYTES)
         try:
             data = json.loads(p.read_text(encoding="utf-8"))
         except (ValueError, UnicodeDecodeError) as e:
@@ -421,9 +468,44 @@ def read_flight(folder: str | Path, topics: Iterable[str] | None = None) -> Flig
     names = list(topics) if topics is not None else [p.stem for p in sorted(folder.glob("*.csv"))]
     for name in names:
         p = folder / f"{name}.csv"
-        if p.exists():
+        if p.exists() and p.name not in TOOL_PRODUCTS:  # flight.csv is the export, not a topic
             flight.tables[name] = read_table(p)
     return flight
+
+
+def is_flight_folder(path: str | Path) -> bool:
+    return (Path(path) / "meta.json").is_file()
+
+
+def check_output(out: str | Path, source: str | Path | None = None, product: str = "") -> Path:
+    """Refuse an output path that would overwrite a flight's raw log (ValueError, one line).
+
+    Resolved to its real path first (symlinks, ``..``): in a flight folder (one with meta.json) a log tool
+    may write only its own product (``product``, one of ``TOOL_PRODUCTS``) or a new file that is not a name
+    the flight log uses; anywhere, it may not be (a hard link to) any file of the flight it reads."""
+    out = Path(out)
+    real = Path(os.path.realpath(out))
+    parent = real.parent
+    if real.is_dir():
+        raise ValueError(f"{out}: is a folder; give a file name")
+    if is_flight_folder(parent) and real.name != product:
+        raw = {f"{t}.csv" for t in TOPICS} | {"meta.json", "config.json", "summary.json", ".reserve"}
+        if real.exists() or real.name in raw:
+            raise ValueError(f"{out}: would overwrite {real.name} of the flight log in {parent}; write elsewhere"
+                             + (f" (or to {product} there)" if product else ""))
+    if source is not None and real.exists() and Path(source).is_dir():
+        for f in Path(source).iterdir():
+            with contextlib.suppress(OSError):
+                if f.name != product and os.path.samefile(f, real):
+                    raise ValueError(f"{out}: is the flight log's {f.name} (a link to it); write elsewhere")
+    return out
+
+
+def write_output(out: Path, data: bytes) -> None:
+    """Write a log tool's product; a write error (disk full, /dev/full) raises OSError, never passes silently."""
+    with open(out, "wb") as f:
+        f.write(data)
+        f.flush()
 
 
 def latest_flight(directory: str | Path) -> Path | None:

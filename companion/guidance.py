@@ -212,7 +212,9 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
     ``[-H, H]``, without uptilt); the tilt margin ``h(t_x) = u . t - cos(max_tilt) |t|`` is concave in ``t_x``
     with maximiser ``xm``: (d) is satisfiable in a piece iff h at ``xm`` clamped into it is >= 0.
     """
-    if t_z < p.f_min * (1.0 - 1e-12):
+    # Tolerance on the scale of the thrusts involved, not of f_min alone: t_z = s a_z - g_z carries rounding
+    # of ~1e-16 g, which a tiny f_min (thrust_min 1e-5) would turn into "no thrust allowed" at its own bound.
+    if t_z < p.f_min - 1e-12 * p.f_max:
         return None
     K = t_y * t_y + t_z * t_z
     r2 = p.f_max * p.f_max - K
@@ -459,9 +461,10 @@ def _demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidancePar
     r_lo, r_hi = room(lo), room(hi)
     side = 0
     for _ in range(60):
-        if hi - lo <= 1e-13 or not math.isfinite(r_hi):
+        if hi - lo <= 1e-13:
             break
-        x = hi - r_hi * (hi - lo) / (r_hi - r_lo) if r_hi != r_lo else 0.5 * (lo + hi)
+        # -inf (no t_x at all: the (a)/(b) bound that gave s, reached with rounding): bisect toward lo.
+        x = hi - r_hi * (hi - lo) / (r_hi - r_lo) if math.isfinite(r_hi) and r_hi != r_lo else 0.5 * (lo + hi)
         if not (lo < x < hi):
             x = 0.5 * (lo + hi)
         r = room(x)

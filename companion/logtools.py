@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import sys
@@ -26,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.flightlog import Flight, flight_crossings, latest_flight, read_flight
+from companion.flightlog import Flight, check_output, flight_crossings, latest_flight, read_flight, write_output
 
 LATENCY_PERCENTILES = (50, 90, 95, 99)
 # A frame interval longer than this many nominal periods means frames were lost in between.
@@ -202,10 +203,14 @@ def _state_index() -> dict[str, int]:
     return {s.value: i for i, s in enumerate(State)}
 
 
-def export_merged(folder: str | Path, out: str | Path | None = None, fill: str = "none") -> Path:
+def export_merged(folder: str | Path, out: str | Path | None = None, fill: str = "none",
+                  skipped: dict[str, int] | None = None) -> Path:
     """One CSV, common time column ``t``, columns ``topic/column``; empty cells where a topic has no sample
-    (``fill="none"``), or each topic's last logged value held until its next sample (``fill="hold"``)."""
+    (``fill="none"``), or each topic's last logged value held until its next sample (``fill="hold"``).
+    Rows whose t is not a finite number have no place on the time axis: left out, counted per topic in
+    ``skipped``. The output may not be one of the flight log's own files (flightlog.check_output)."""
     folder = resolve_folder(folder)
+    path = check_output(Path(out) if out is not None else folder / "flight.csv", folder, "flight.csv")
     flight = read_flight(folder)
     index = _state_index()
     cols: list[str] = []
@@ -217,8 +222,13 @@ def export_merged(folder: str | Path, out: str | Path | None = None, fill: str =
         if topic == "states":
             cols.append("states/state_index")
         for i in range(len(tab)):
-            t = float(tab["t"][i])
+            try:
+                t = float(tab["t"][i])
+            except (TypeError, ValueError):
+                t = math.nan
             if not math.isfinite(t):
+                if skipped is not None:
+                    skipped[topic] = skipped.get(topic, 0) + 1
                 continue
             row = per_time.setdefault(t, {})
             # Two rows of one topic at the same instant: keep both (second on a row of its own).
@@ -229,18 +239,19 @@ def export_merged(folder: str | Path, out: str | Path | None = None, fill: str =
                 row[f"{topic}/{c}"] = tab[c][i]
             if topic == "states":
                 row["states/state_index"] = index.get(str(tab["to_state"][i]), -1)
-    path = Path(out) if out is not None else folder / "flight.csv"
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", encoding="utf-8", newline="") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(["t", *cols])
-        held: dict[str, Any] = {}
-        for t in sorted(per_time):
-            row = per_time[t]
-            if fill == "hold":
-                held.update({c: v for c, v in row.items() if _cell(v) != ""})
-                row = held
-            w.writerow([format(t, ".9g"), *(_cell(row.get(c)) for c in cols)])
+    # Written in one go and flushed inside the with: a full disk or /dev/full is an OSError, not a silent 0.
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["t", *cols])
+    held: dict[str, Any] = {}
+    for t in sorted(per_time):
+        row = per_time[t]
+        if fill == "hold":
+            held.update({c: v for c, v in row.items() if _cell(v) != ""})
+            row = held
+        w.writerow([format(t, ".9g"), *(_cell(row.get(c)) for c in cols)])
+    write_output(path, buf.getvalue().encode("utf-8"))
     return path
 
 
@@ -276,15 +287,28 @@ def _cmd_summary(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"companion log summary: {e}", file=sys.stderr)
         return 2
+    except MemoryError:
+        print(f"companion log summary: {args.folder}: too large to read in memory", file=sys.stderr)
+        return 2
     print(json.dumps(s.as_dict(), indent=1) if args.json else format_summary(s))
     return 0
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    skipped: dict[str, int] = {}
     try:
-        out = export_merged(args.folder, args.output, args.fill)
+        out = export_merged(args.folder, args.output, args.fill, skipped)
     except (FileNotFoundError, ValueError) as e:
         print(f"companion log export: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # the output cannot be written (disk full, /dev/full, no permission)
+        print(f"companion log export: {e.filename or args.output}: cannot write ({e.strerror or e})", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"companion log export: {args.folder}: too large to export in memory", file=sys.stderr)
+        return 2
+    if skipped:
+        print(f"companion log export: left out {sum(skipped.values())} row(s) whose t is not a finite number ("
+              + ", ".join(f"{k}: {v}" for k, v in sorted(skipped.items())) + ")", file=sys.stderr)
     print(out)
     return 0

@@ -22,14 +22,20 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from companion.attitude import AttitudeTrack
 from companion.config import Config, add_config_arguments, config_from_args
+from companion.recording import (
+    RecordingReader,
+    ReplayError,
+    frame_time,
+    is_recording,
+    level_attitude,
+    load_attitude,
+)
 
 CSV_COLUMNS = (
     "frame", "t", "box", "cx", "cy", "w", "h", "confidence", "los_raw_n", "los_raw_e", "los_raw_d",
@@ -40,76 +46,6 @@ CSV_COLUMNS = (
     "state", "app_roll_deg", "app_pitch_deg", "app_yaw_deg", "app_thrust", "app_event",
     "engagement",  # the engagement this frame belongs to (1, 2, ...: replay restarts the core after each end)
 )
-
-
-class ReplayError(ValueError):
-    """Bad replay input, as one line."""
-
-
-def level_attitude() -> AttitudeTrack:
-    return AttitudeTrack(np.array([0.0]), np.array([[1.0, 0.0, 0.0, 0.0]]))
-
-
-def _rows_to_track(rows: list[dict[str, Any]], where: str) -> AttitudeTrack:
-    need = ("t", "qw", "qx", "qy", "qz")
-    good = []
-    for i, r in enumerate(rows):
-        missing = [k for k in need if k not in r]
-        if missing:
-            raise ReplayError(f"{where}: row {i + 1}: missing {', '.join(missing)} (need t, qw, qx, qy, qz)")
-        try:
-            vals = [float(r[k]) for k in need]
-        except (TypeError, ValueError):
-            continue  # a blank or cut-off line (a log killed mid-write): skip it
-        if all(math.isfinite(v) for v in vals) and np.linalg.norm(vals[1:]) > 0.5:
-            good.append(vals)
-    if not good:
-        raise ReplayError(f"{where}: no attitude samples (t, qw, qx, qy, qz)")
-    a = np.array(sorted(good, key=lambda v: v[0]))
-    t, keep = np.unique(a[:, 0], return_index=True)
-    q = a[keep, 1:]
-    return AttitudeTrack(t, q / np.linalg.norm(q, axis=1, keepdims=True))
-
-
-def _read_csv(path: Path) -> list[dict[str, Any]]:
-    with open(path, newline="", encoding="utf-8") as f:
-        return list(csv.DictReader(f))
-
-
-def load_attitude(path: str | Path) -> AttitudeTrack:
-    """Attitude from a flight folder, a CSV or a JSON-lines file (see the module doc)."""
-    p = Path(path)
-    if p.is_dir():
-        tel = p / "telemetry.csv"
-        if not tel.is_file():
-            raise ReplayError(f"{p}: flight folder without telemetry.csv")
-        track = _rows_to_track(_read_csv(tel), str(tel))
-        det = p / "detections.csv"
-        if det.is_file():
-            ft = {}
-            for r in _read_csv(det):
-                try:
-                    ft[int(float(r["frame"]))] = float(r["t_frame"])
-                except (KeyError, TypeError, ValueError):
-                    continue
-            track.frame_times = ft or None
-        return track
-    if not p.is_file():
-        raise ReplayError(f"{p}: flight log not found")
-    if p.suffix in (".jsonl", ".json", ".ndjson"):
-        rows = []
-        lines = p.read_text(encoding="utf-8").splitlines()
-        for i, line in enumerate(lines):
-            if not line.strip():
-                continue
-            try:
-                rows.append(json.loads(line))
-            except ValueError:
-                if i == len(lines) - 1:
-                    continue  # a cut-off last line (log killed mid-write)
-                raise ReplayError(f"{p}: line {i + 1}: not JSON") from None
-        return _rows_to_track(rows, str(p))
-    return _rows_to_track(_read_csv(p), str(p))
 
 
 def _load_labels(seq: str | Path | None) -> list[np.ndarray | None]:
@@ -140,7 +76,7 @@ def replay(
     import cv2
     from tqdm import tqdm
 
-    from companion.app.record import Recorder, RecordingReader, is_recording
+    from companion.app.record import Recorder
     from companion.controller import PNController
     from companion.core import FlightCore, FrameInput
     from companion.engagetally import EngagementTally
@@ -166,8 +102,10 @@ def replay(
             f"{cfg.camera.width}x{cfg.camera.height} (the intrinsics must match the video)"
         )
     track = load_attitude(log) if log is not None else None
+    attitude_from = str(log) if log is not None else "level"
     if track is None and recording is not None:
         track = recording.attitude()  # the attitude recorded with each frame
+        attitude_from = f"{video} (recorded with the frames)" if track is not None else "level"
     track = track or level_attitude()
     out_dir = Path(out) if out is not None else video.with_name(video.stem + "_replay")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -197,7 +135,8 @@ def replay(
             ok, frame = cap.read()
             if not ok or (max_frames and k >= max_frames):
                 break
-            t = track.frame_times.get(k, t0 + k / fps) if track.frame_times else t0 + k / fps
+            # By camera frame number (a video's frame k is the camera's k + 1): the time it was taken.
+            t = frame_time(track, recording.frame_no if recording is not None else k + 1, k, t0, fps)
             q = track.at(t)
             R = R_from_quat_wxyz(q)
             if rec is not None:
@@ -256,8 +195,13 @@ def replay(
         writer.release()
         if rec is not None:
             rec.close()
+    unread = recording.problems() if recording is not None else ""
     if not rows:
-        raise ReplayError(f"{video}: no frames could be read")
+        raise ReplayError(f"{video}: no frames could be read" + (f" ({unread})" if unread else ""))
+    if unread:  # replay goes on over the rest; the count is on stderr and in summary.json
+        import sys
+
+        print(f"companion replay: warning: {video}: {unread}", file=sys.stderr)
     with open(out_dir / "replay.csv", "w", newline="", encoding="utf-8") as f:
         wr = csv.DictWriter(f, fieldnames=CSV_COLUMNS, lineterminator="\n")
         wr.writeheader()
@@ -265,7 +209,8 @@ def replay(
     _plot(rows, out_dir / "replay.png", video.name)
     summary = {
         "video": str(video), "frames": len(rows), "fps": fps, "boxes": sum(r["box"] for r in rows),
-        "attitude": str(log) if log is not None else "level", "out": str(out_dir),
+        "attitude": attitude_from, "out": str(out_dir),
+        "unreadable": {"frames": recording.unreadable, "torn_index_row": recording.torn} if recording else None,
         # The running engagement at the end of the video, else the last one that ended.
         "engagement": {"state": core.phase.value if core.engagement.passes or not ends else last[0], "end": ended,
                        "passes": [g.as_dict() for g in (core.engagement.passes or last[1])]},

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.flightlog import read_flight
+from companion.flightlog import check_output, read_flight, write_output
 
 _STATE_COLOURS = {
     "ACQUIRE": "#dddddd", "ENGAGE": "#ffd8a8", "PASS": "#ffa8a8", "RECOVER": "#a8d8ff",
@@ -31,7 +31,8 @@ def plot_flight(folder: str | Path, output: str | Path | None = None) -> Path:
 
     folder = Path(folder)
     f = read_flight(folder)
-    out = Path(output) if output is not None else folder / "plot.png"
+    # Never over a raw file of the flight (a path into the folder, a symlink or a hard link to one).
+    out = check_output(Path(output) if output is not None else folder / "plot.png", folder, "plot.png")
     fig, ax = plt.subplots(5, 1, figsize=(11, 13), sharex=True)
     tmax = max((float(np.nanmax(t["t"])) for t in f.tables.values() if len(t)), default=1.0)
     for a in ax:
@@ -89,6 +90,10 @@ def plot_flight(folder: str | Path, output: str | Path | None = None) -> Path:
     fig.suptitle(f"{folder.name}: {s.get('outcome', '?')} ({s.get('reason', '?')}) {s.get('detail', '')}"[:140],
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(out, dpi=90)
+    import io
+
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=90)
+    write_output(out, png.getvalue())  # a write error is an OSError (savefig to /dev/full said nothing)
     plt.close(fig)
     return out

@@ -28,8 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from companion.attitude import AttitudeTrack
-
 FORMAT = "companion-recording"
 INDEX_COLUMNS = ("frame", "file", "t", "t_mono", "qw", "qx", "qy", "qz", "width", "height")
 FREE_MARGIN_BYTES = 200 * 1024 * 1024  # leave this much free on the disk (the flight log needs room too)
@@ -202,66 +200,8 @@ def recorder_for_flight(folder: str | Path, cfg: Any, log: Any, stderr: Any, **k
     return Recorder(folder, t0=log.t0, meta=meta, on_stop=on_stop, **kw)
 
 
-# ------------------------------------------------------------------------------------------------ reading
-
-
-def is_recording(path: str | Path) -> bool:
-    p = Path(path)
-    return p.is_dir() and (p / "index.csv").is_file()
-
-
-class RecordingReader:
-    """A recording read back like a cv2.VideoCapture (``read``, ``get``, ``release``), plus its attitude."""
-
-    def __init__(self, folder: str | Path) -> None:
-        self.folder = Path(folder)
-        try:
-            with open(self.folder / "index.csv", encoding="utf-8", newline="") as f:
-                rows = [r for r in csv.DictReader(f) if r.get("file")]
-            self.meta = json.loads((self.folder / "meta.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError) as e:
-            raise RecordError(f"{self.folder}: not a readable recording ({e})") from None
-        if not rows:
-            raise RecordError(f"{self.folder}: recording without frames")
-        self.rows = rows
-        self.t = np.array([float(r["t"]) for r in rows])
-        self.q = np.array([[float(r[k]) for k in ("qw", "qx", "qy", "qz")] for r in rows])
-        self._k = 0
-        span = self.t[-1] - self.t[0]
-        self.fps = (len(rows) - 1) / span if len(rows) > 1 and span > 0 else 30.0
-
-    def isOpened(self) -> bool:  # cv2.VideoCapture's name
-        return True
-
-    def read(self) -> tuple[bool, np.ndarray | None]:
-        import cv2
-
-        if self._k >= len(self.rows):
-            return False, None
-        img = cv2.imread(str(self.folder / self.rows[self._k]["file"]), cv2.IMREAD_COLOR)
-        self._k += 1
-        return (img is not None), img
-
-    def get(self, prop: int) -> float:
-        import cv2
-
-        r = self.rows[0]
-        props = {cv2.CAP_PROP_FPS: self.fps, cv2.CAP_PROP_FRAME_COUNT: float(len(self.rows)),
-                 cv2.CAP_PROP_FRAME_WIDTH: float(r["width"]), cv2.CAP_PROP_FRAME_HEIGHT: float(r["height"])}
-        return props.get(prop, 0.0)
-
-    def release(self) -> None:
-        self._k = len(self.rows)
-
-    def attitude(self) -> Any:
-        """The attitude track of the recording (companion/attitude.py), frame k at its recorded time."""
-        ok = np.isfinite(self.q).all(axis=1)
-        if not ok.any():
-            return None
-        t, keep = np.unique(self.t[ok], return_index=True)
-        q = self.q[ok][keep]
-        return AttitudeTrack(t, q / np.linalg.norm(q, axis=1, keepdims=True),
-                             {k: float(self.t[k]) for k in range(len(self.rows))})
+# Reading a recording back: companion/recording.py (replay's input checks); the names stay importable here.
+from companion.recording import RecordingReader, is_recording  # noqa: E402, F401
 
 
 def add_record_arguments(p: Any) -> None:
@@ -273,9 +213,44 @@ def add_record_arguments(p: Any) -> None:
                    help="stop recording after this many MB (default 4000); it also stops when the disk is nearly full")
 
 
+MAX_RECORD_MB = 10_000_000.0  # 10 TB: a larger budget is a typo (and inf overflowed int())
+MIN_RECORD_BYTES = 10 * 1024 * 1024  # room for the first few hundred frames beyond the free margin
+
+
+def check_record_target(folder: str | Path, free_margin: int = FREE_MARGIN_BYTES) -> None:
+    """Refuse, before anything is made or flown, a --record folder that cannot take a recording: not a
+    folder (/dev/null, a file), not writable, or on a disk with too little free space (the recorder would
+    stop at its first frame while the flight goes on). RecordError, one line."""
+    import os
+
+    p = Path(folder)
+    if p.exists() and not p.is_dir():
+        raise RecordError(f"--record {folder}: not a folder")
+    probe = p
+    while not probe.exists():  # the nearest existing ancestor is where the folder will be made
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise RecordError(f"--record {folder}: {probe} is not a writable folder")
+    free = shutil.disk_usage(probe).free
+    if free < free_margin + MIN_RECORD_BYTES:
+        raise RecordError(f"--record {folder}: {free / 1e6:.0f} MB free on its disk; recording needs more than "
+                          f"{(free_margin + MIN_RECORD_BYTES) / 1e6:.0f} MB (it always leaves "
+                          f"{free_margin / 1e6:.0f} MB free for the flight log)")
+
+
 def record_kwargs(args: Any) -> dict[str, Any]:
+    """Recorder options from the command line, checked (ConfigError, one line) before anything starts."""
+    import math
+
     from companion.configbase import ConfigError
 
-    if getattr(args, "record", None) and not args.record_max_mb > 0:
-        raise ConfigError(f"--record-max-mb {args.record_max_mb}: must be > 0")
-    return {"fmt": args.record_format, "max_bytes": int(args.record_max_mb * 1e6)}
+    if not getattr(args, "record", None):
+        return {"fmt": args.record_format, "max_bytes": int(4000.0 * 1e6)}
+    mb = args.record_max_mb
+    if not (math.isfinite(mb) and 0 < mb <= MAX_RECORD_MB):
+        raise ConfigError(f"--record-max-mb {mb}: must be a number > 0 and <= {MAX_RECORD_MB:g}")
+    try:
+        check_record_target(args.record)
+    except RecordError as e:
+        raise ConfigError(str(e)) from None
+    return {"fmt": args.record_format, "max_bytes": int(mb * 1e6)}

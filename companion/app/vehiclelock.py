@@ -3,7 +3,9 @@
 Two apps on one vehicle fight over it (the second arms and "takes off" a vehicle already in the air
 and knocks the first one out). The lock lives in ``$XDG_RUNTIME_DIR`` (else the system temp folder),
 is named after the link URL with what does not name the vehicle left out (a serial port's baud
-rate, a listening UDP link's address: its port is what two apps would share), and holds the
+rate, a listening UDP link's address: its port is what two apps would share); a serial port is named
+by the device itself (its device number, else its real path), so /dev/ttyACM0, a /dev/serial/by-id/
+link to it and a path through ``..`` are one lock. The file holds the
 owner's pid. ``flock`` belongs to the open file: the kernel drops it when the process ends however
 it ends (SIGKILL included), so a stale file never blocks the next flight.
 """
@@ -14,6 +16,7 @@ import contextlib
 import fcntl
 import os
 import re
+import stat
 import tempfile
 from pathlib import Path
 
@@ -24,13 +27,27 @@ class VehicleBusy(RuntimeError):
 
 def lock_name(url: str) -> str:
     """``companion-<link>.lock``: the vehicle's address from the URL, in file-name characters."""
-    u = url.strip().lower()
-    if u.startswith("serial://"):
-        u = re.sub(r":\d+$", "", u)  # serial:///dev/ttyACM0:57600 and :921600 are one vehicle
+    u = url.strip()
+    if u.lower().startswith("serial://"):
+        dev = re.sub(r":\d+$", "", u[len("serial://"):])  # serial:///dev/ttyACM0:57600 and :921600: one vehicle
+        u = "serial://" + _device_key(dev)
+    u = u.lower()
     m = re.match(r"^(udpin|udp)://[^/]*:(\d+)$", u)
     if m:  # a listening link is its local port: udpin://127.0.0.1:14540 and udpin://0.0.0.0:14540 collide
         u = f"udpin://{m.group(2)}"
     return "companion-" + re.sub(r"[^a-z0-9._-]+", "_", u).strip("_")[:120] + ".lock"
+
+
+def _device_key(dev: str) -> str:
+    """One name per device however the path reaches it: the character device's number (st_rdev) when it
+    exists, else the resolved path (symlinks, ``..``; a device that is not there yet keeps its text)."""
+    try:
+        st = os.stat(dev)
+    except OSError:
+        return os.path.realpath(dev) if dev else dev
+    if stat.S_ISCHR(st.st_mode):
+        return f"dev-{os.major(st.st_rdev)}-{os.minor(st.st_rdev)}"
+    return os.path.realpath(dev)
 
 
 def lock_dir() -> Path:

@@ -20,6 +20,7 @@ import fcntl
 import hashlib
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -184,6 +185,36 @@ def _fmt_value(v: float) -> str:
     return str(int(v)) if float(v).is_integer() else repr(float(v))
 
 
+OWNER_FILE = ".companion-owner"  # pid of the process that made a px4-N-* working folder
+
+
+def clean_stale_work(parent: Path) -> list[Path]:
+    """Remove the px4-N-* working folders we made whose process is gone and that hold no ULog (a start that
+    was interrupted, ~4 MB each); a folder with a ULog is a flight's record and stays, and a folder without
+    our owner file is not ours. Returns the folders removed."""
+    removed = []
+    for d in parent.glob("px4-*-*"):
+        try:
+            pid = int((d / OWNER_FILE).read_text().strip())
+        except (OSError, ValueError):
+            continue
+        if _alive(pid) or any((d / "log").glob("*/*.ulg")):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # exists, not ours to signal
+    return True
+
+
 class PX4Sitl:
     """One PX4 SITL SIH instance in a fresh working folder."""
 
@@ -261,17 +292,20 @@ class PX4Sitl:
         cands = [self.requested] if self.requested is not None else self.candidates
         self.instance, self._lock = claim_instance(cands)
         self.work_parent.mkdir(parents=True, exist_ok=True)
+        clean_stale_work(self.work_parent)
         self.work = Path(tempfile.mkdtemp(prefix=f"px4-{self.instance}-", dir=self.work_parent))
+        (self.work / OWNER_FILE).write_text(f"{os.getpid()}\n")
         env = {k: v for k, v in os.environ.items() if not k.startswith("PX4_")}
         env.update(PX4_SIM_MODEL="sihsim_quadx", PX4_SIMULATOR="sihsim", PX4_SIM_SPEED_FACTOR="1")
-        self._out = open(self.console, "wb")  # noqa: SIM115 (PX4's console, kept beside its logs)
         cmd = [str(self.bin / "px4"), "-d", "-w", str(self.work), "-i", str(self.instance), str(self.sitl / "etc")]
-        self.proc = subprocess.Popen(cmd, cwd=self.work, env=env, stdin=subprocess.DEVNULL, stdout=self._out,
-                                     stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=die_with_parent)
-        self.t_start = time.monotonic()
-        atexit.register(self.stop)
-        self.log(f"PX4 SITL instance {self.instance} (pid {self.proc.pid}), working folder {self.work}")
         try:
+            self._out = open(self.console, "wb")  # noqa: SIM115 (PX4's console, kept beside its logs)
+            self.proc = subprocess.Popen(cmd, cwd=self.work, env=env, stdin=subprocess.DEVNULL, stdout=self._out,
+                                         stderr=subprocess.STDOUT, start_new_session=True,
+                                         preexec_fn=die_with_parent)
+            self.t_start = time.monotonic()
+            atexit.register(self.stop)
+            self.log(f"PX4 SITL instance {self.instance} (pid {self.proc.pid}), working folder {self.work}")
             self._wait_console("Startup script returned", timeout)
             if "Startup script returned successfully" not in self._console_text():
                 raise PX4SitlError(f"PX4 start-up script failed; see {self.console}")
@@ -284,8 +318,10 @@ class PX4Sitl:
             self.client("mavlink", "stream", "-u", port, "-s", "HIL_ACTUATOR_CONTROLS", "-r", "0")
             self.origin = (self.param_get("SIH_LOC_LAT0"), self.param_get("SIH_LOC_LON0"),
                            self.param_get("SIH_LOC_H0"))
-        except BaseException:
+        except BaseException as e:
             self.stop()
+            if not isinstance(e, PX4SitlError):  # interrupted (Ctrl-C, a signal, a crash): nothing worth keeping
+                shutil.rmtree(self.work, ignore_errors=True)  # (a PX4SitlError points at px4.out in it: kept)
             raise
         return self
 
