@@ -3,7 +3,7 @@
 Before the fix the app printed ``ARM -> ABORT_NOT_ARMED ... IllegalTransition``, exit 16, while PX4 armed on
 resume (the ARM command waited in the socket) and sat armed in Hold until its own auto-disarm. The test asserts
 the invariant, not one path: whether the freeze lands before the ARM reaches PX4 or just after it, the app's last
-line and summary.json name a state that PX4's own commander reports when the app has exited.
+line and summary.json name a state that PX4's own heartbeat reports once the app has exited.
 """
 
 from __future__ import annotations
