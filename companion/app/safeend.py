@@ -151,7 +151,7 @@ class SafeEnds:
             return
         try:
             # PX4's auto-disarm first (1 s), else our disarm command; confirmed by telemetry.
-            await link.wait_landed_and_disarm(timeout=lc.command_timeout)
+            await link.wait_landed_and_disarm(timeout=1.0 + lc.command_timeout)
         except Exception as e:
             await link.close()
             self._go_seen(f"{d}; PX4 armed on the ground after all and our disarm failed ({e}): the vehicle is "
