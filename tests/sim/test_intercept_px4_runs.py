@@ -9,7 +9,7 @@ import pytest
 
 from companion.app.outcome import GateJudge
 from companion.config import load_config
-from companion.evaluation.intercept import suite_intercept
+from companion.evaluation.intercept import report_intercept, suite_intercept
 from companion.evaluation.px4intercept import px4_intercept_runs
 
 
@@ -30,5 +30,6 @@ def test_px4_runs_are_the_in_process_suites_runs_as_app_configs():
         assert GateJudge.for_config(cfg).box == (2.5, 3.0)  # the judge measures the camera's rectangle
         assert abs(cfg.app.synthetic.height_offset) <= 1.0 and (not g["on_ground"] or
                                                                  cfg.app.synthetic.height_offset == 0.0)
+    assert suite.report is report_intercept  # PX4's results tabled as the in-process ones
     with pytest.raises(ValueError, match="--camera geometric"):
         px4_intercept_runs(base, 5, 3, "rendered")
