@@ -176,6 +176,19 @@ def test_printed_gate_line_and_summary_truth_come_from_one_computation(tmp_path,
     assert row.d_center == g["d_center_m"]
 
 
+def test_the_printed_report_names_an_intercept_not_a_missed_gate(tmp_path, capsys):
+    """``companion sim``'s report after a pull-up: the target's plane crossing over its top is the intercept's, not
+    a gate line saying "missed"."""
+    from companion.sim.appflight import print_flight_report
+
+    summary = _flight_with_judge(tmp_path / "f")
+    summary["truth"]["intercepts"] = [{"gate": 1, "predicted_miss_m": 0.4, "clearance_m": 1.7}]
+    print_flight_report(tmp_path / "f", summary)
+    out = capsys.readouterr().out.splitlines()
+    assert not any(s.startswith("gate 1:") for s in out)
+    assert "intercept (target 1): predicted miss 0.40 m, cleared by 1.70 m (ground truth)" in out
+
+
 def test_a_log_without_the_judges_record_is_rescored(tmp_path):
     """A killed flight (summary.json still "running") or an older log: the crossings come from the topics."""
     from companion.flightlog import flight_crossings
