@@ -12,7 +12,7 @@ import enum
 class Reason(enum.IntEnum):
     """Why the flight ended; the value is the process exit code (1 = crash, 2 = config error are taken)."""
 
-    OK = 0  # gate(s) passed, handed back, landed, disarmed
+    OK = 0  # gate(s) passed (or an intercept pulled up and cleared), handed back, landed, disarmed
     NO_TARGET = 10  # no stable track within acquire_timeout
     TARGET_LOST = 11
     PERCEPTION_STALL = 12  # watchdog: no fresh control output
@@ -38,3 +38,6 @@ class Reason(enum.IntEnum):
     PASS_NOT_CONFIRMED = 31  # no ground truth: a pass ended on its timeout, without evidence the gate is behind
     TELEMETRY_INVALID = 32  # attitude/telemetry rejected (non-finite, out of range, spoofed) persistently
     AUTOPILOT_MODE = 33  # PX4 changed the mode on its own (failsafe land, return, ...): not the pilot, not us
+    # An intercept (app.on_close: pull_up) judged by ground truth (companion/app/outcome.py); a cleared one is OK:
+    INTERCEPT_IMPACT = 34  # the pull-up came within outcome.IMPACT_DISTANCE of the target's box: it hit
+    TARGET_MISSED = 35  # cleared, but the track before the pull-up would have crossed outside the target's box

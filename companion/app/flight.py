@@ -215,8 +215,10 @@ class FlightApp(Monitors, SafeEnds):
         if self.judge is None or not self.judge.has_truth:
             return None
         gates = self.judge.results()
+        icpt = self.judge.intercepts(self.core.engagement.passes) if self.core is not None else {}
         return {"gates": [g.as_dict() for g in gates], "through": sum(g.through for g in gates),
-                "missed": sum(g.crossed and not g.through for g in gates)}
+                "missed": sum(g.crossed and not g.through for g in gates),
+                "intercepts": [r.as_dict() for r in icpt.values()]}
 
     # ------------------------------------------------------------------------------ sequence
     async def _sequence(self) -> None:
@@ -437,7 +439,8 @@ class FlightApp(Monitors, SafeEnds):
         judge = self.judge
         truth = judge.results() if judge is not None and judge.has_truth else None
         assert self.core is not None
-        reason, line = verdict(self.core.engagement.passes, truth)
+        icpt = judge.intercepts(self.core.engagement.passes) if truth is not None and judge is not None else None
+        reason, line = verdict(self.core.engagement.passes, truth, icpt)
         self._verdict = line
         self.log.event(f"outcome {reason.name}: {line}", "info" if reason is Reason.OK else "error")
         return reason, f"{d.why}; {line}"
@@ -475,7 +478,8 @@ class FlightApp(Monitors, SafeEnds):
 
     def _verdict_tail(self, reason: Reason) -> str:
         """A normal end that is not what was claimed says why, on the final line (stderr, log, summary)."""
-        return f"; {self._verdict}" if reason in (Reason.GATE_MISSED, Reason.PASS_NOT_CONFIRMED) else ""
+        return f"; {self._verdict}" if reason in (Reason.GATE_MISSED, Reason.PASS_NOT_CONFIRMED,
+                                                  Reason.INTERCEPT_IMPACT, Reason.TARGET_MISSED) else ""
 
     async def _perceive(self, frame: Frame) -> Any:
         if self.perception_in_thread:
@@ -524,4 +528,4 @@ class FlightApp(Monitors, SafeEnds):
     def _log_telemetry(self) -> None:
         truth = log_telemetry(self.log, self.link, self.truth)
         if truth is not None and self.judge is not None:
-            self.judge.vehicle(truth.t_rx, truth.position_ned)
+            self.judge.vehicle(truth.t_rx, truth.position_ned, truth.velocity_ned)

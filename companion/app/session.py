@@ -165,7 +165,7 @@ async def _fly_locked(
 
         # PX4 SIH's ground truth for the camera and the score (px4.truth_url), else the link's own position.
         truth = open_truth(cfg) or LinkPositionTruth(link)
-        judge = GateJudge()  # ground truth, where a simulator provides it: scores the gates, never steers
+        judge = GateJudge.for_config(cfg)  # ground truth, where a simulator provides it: scores the gates, never steers
         camera, perception, in_thread = build_camera(cfg, link, log, judge, truth)
         if record is not None:  # --record DIR: every frame with its time and attitude (companion/app/record.py)
             from companion.app.record import RecordingCamera, link_attitude, recorder_for_flight

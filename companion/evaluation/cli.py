@@ -73,8 +73,8 @@ def register(subparsers: Any) -> None:
                    help="tune: write the result as a config overlay (includes the --config files) for fly/eval")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--autopilot", choices=AUTOPILOTS, default="in-process",
-                   help="px4: table1 in real time on PX4 SITL (SIH) with the complete app, one PX4 instance per "
-                   "--jobs (companion/evaluation/px4.py)")
+                   help="px4: table1 or intercept in real time on PX4 SITL (SIH) with the complete app, one PX4 "
+                   "instance per --jobs (companion/evaluation/px4.py)")
     p.add_argument("--px4-dir", default=None, metavar="DIR", help="PX4 SITL build (default px4.sitl_dir, "
                    "$PX4_SITL_DIR)")
     p.add_argument("--motions", default=None, metavar="M1,M2", help="only these gate motions (--autopilot px4)")

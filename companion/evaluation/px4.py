@@ -49,7 +49,7 @@ SETTLE_TIMEOUT = 60.0  # s for PX4 to reach and settle at a start point
 # (measured at rest): a 1.5 m bound failed the first start point of a fresh PX4 now and then (a harness error and
 # a restart). The app anchors its virtual gates at its first frame, so the start needs no more precision.
 SETTLE_RADIUS = 3.0  # m, truth to the start point
-SUPPORTED = ("table1",)
+SUPPORTED = ("table1", "intercept")  # intercept: companion/evaluation/px4intercept.py
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,7 @@ class Px4Job:
 
 def score_flight(folder: Path, radii: list[float]) -> dict[str, Any]:
     """One run's result from its flight log, in the in-process suites' keys (companion.sim.scoring)."""
+    from companion.evaluation.px4intercept import intercept_keys
     from companion.flightlog import gate_crossings, read_flight
     from companion.metrics import NO_OSCILLATION, max_tilt_deg, oscillation
     from companion.sim.scoring import rkey
@@ -107,6 +108,7 @@ def score_flight(folder: Path, radii: list[float]) -> dict[str, Any]:
         "latency_p50_ms": lat.get("p50"), "latency_p95_ms": lat.get("p95"),
         "outcome": s.get("outcome"), "reason": s.get("reason"), "gates_passed_app": s.get("gates_passed"),
         "crossings": len(cross), "folder": str(folder),
+        **intercept_keys(f),  # a pull-up's score ({} for none)
     }
 
 
@@ -338,6 +340,11 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
 def px4_jobs(suite_name: str, cfg: Config, runs: int | None, seed: int, motions: list[str] | None,
              camera: str) -> tuple[list[Px4Job], Any]:
     """The in-process suite's runs (same motions and seeds) as app flights; interleaved across groups."""
+    if suite_name == "intercept":  # its own scenarios (target, motion, pull-up): a list of config overrides
+        from companion.evaluation.px4intercept import px4_intercept_runs
+
+        runs_ov, suite = px4_intercept_runs(cfg, runs, seed, camera)
+        return [Px4Job(k, g, ov) for k, (g, ov) in enumerate(runs_ov)], suite
     picked = motions or list(TABLE1_MOTIONS)
     per = max(1, (runs or 10 * len(picked)) // len(picked))
     suite = build_suite(suite_name, cfg, per * len(TABLE1_MOTIONS), seed)

@@ -54,6 +54,11 @@ def latency_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# What the PX4 suites' times measure (their runs start in PX4's hover).
+PX4_TIMES = {"table1": "t_gate: ENGAGE to the gate plane (runs start in hover 25 m away).",
+             "intercept": "Duration: ENGAGE to the pull-up (runs start in hover 12 m up, the target 30-50 m ahead)."}
+
+
 def suite_markdown(res: dict[str, Any], cmd: str, cfg: Config) -> str:
     """table.md: what ran (command, protocol or PX4 set-up, runs, seed, time) above the suite's tables."""
     if res.get("autopilot") == "px4":
@@ -62,7 +67,7 @@ def suite_markdown(res: dict[str, Any], cmd: str, cfg: Config) -> str:
                 f"{sih.mass:g} kg, thrust-to-weight {sih.thrust_to_weight:.2f}, drag {sih.kdv:g} N/(m/s); "
                 f"the complete app (start=pilot, hand back to Hold), camera {res['camera']}; scored by SIH's ground "
                 f"truth. Runs: {len(res['runs'])}, seed {res['seed']}, {res['wall_time_s'] / 60:.1f} min wall on "
-                f"{res['jobs']} PX4 instance(s). t_gate: ENGAGE to the gate plane (runs start in hover 25 m away). "
+                f"{res['jobs']} PX4 instance(s). {PX4_TIMES.get(res['suite'], PX4_TIMES['table1'])} "
                 f"Ours first, the paper's in brackets.\n\n{res['markdown']}\n")
     return (f"## {res['suite']}\n\nCommand: `{cmd}`  \nProtocol: {res['protocol']}. "
             f"Runs: {len(res['runs'])}, seed {res['seed']}, "

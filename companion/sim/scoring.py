@@ -10,13 +10,20 @@ is companion/scoring.py's, shared with the app's judge and the flight log.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
-from companion.scoring import GatePlane, signed_distance
+# The pull-up's scorer is the core's (the app's judge on PX4 uses the same one): re-exported for the simulator.
+from companion.scoring import (  # noqa: F401
+    GatePlane,
+    PullUpScorer,
+    distance_to_rect,
+    predicted_miss,
+    rect_basis,
+    signed_distance,
+)
 
 FailReason = Literal["fov_lost", "timeout", "ground", "missed"]
 
@@ -125,76 +132,3 @@ def setpoint_metrics(runs: list[dict]) -> dict:
         vals = [r[k] for r in runs if r.get(k) is not None]
         out[f"{k}_mean"] = float(np.mean(vals)) if vals else None
     return out
-
-
-def rect_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(horizontal in-plane axis, vertical in-plane axis, normal) of a target with a horizontal normal."""
-    n = np.asarray(normal, float) / float(np.linalg.norm(normal))
-    a = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    u = np.cross(n, a)
-    u /= np.linalg.norm(u)
-    return u, np.cross(n, u), n
-
-
-def distance_to_rect(p: np.ndarray, centre: np.ndarray, basis: tuple[np.ndarray, np.ndarray, np.ndarray],
-                     half_w: float, half_h: float) -> float:
-    """Distance (m) from point p to the flat width x height rectangle (the target's box) at ``centre``."""
-    u, w, n = basis
-    q = np.asarray(p, float) - np.asarray(centre, float)
-    da = max(abs(float(q @ u)) - half_w, 0.0)
-    db = max(abs(float(q @ w)) - half_h, 0.0)
-    return math.sqrt(da * da + db * db + float(q @ n) ** 2)
-
-
-def predicted_miss(p: np.ndarray, v: np.ndarray, g: np.ndarray, gv: np.ndarray, normal: np.ndarray) -> float | None:
-    """Distance from the target's centre where the vehicle would cross the target's plane, both extrapolated
-    at their velocities (the paper's "predicted miss", from the last velocity before the pull-up); None when the
-    vehicle was not closing on the plane."""
-    n = np.asarray(normal, float) / float(np.linalg.norm(normal))
-    r = np.asarray(p, float) - np.asarray(g, float)
-    u = np.asarray(v, float) - np.asarray(gv, float)
-    un = float(u @ n)
-    if un >= -1e-9:
-        return None
-    s = -float(r @ n) / un
-    return float(np.linalg.norm(r + u * s))
-
-
-@dataclass
-class PullUpScorer:
-    """Scores an intercept with a pull-up from ground truth: the predicted miss at the pull-up (extrapolated from
-    the last state before it) and the clearance (least distance between the vehicle and the target's box after
-    it)."""
-
-    normal: np.ndarray
-    half_w: float
-    half_h: float
-    t_pullup: float | None = None
-    miss: float | None = None  # m, predicted miss
-    clearance: float = math.inf  # m, after the pull-up
-    speed_at_pullup: float | None = None
-    min_altitude: float = math.inf  # m, the vehicle's lowest true altitude over the whole run
-    _last: tuple | None = field(default=None, repr=False)
-
-    def __post_init__(self) -> None:
-        self._basis = rect_basis(self.normal)
-
-    def update(self, t: float, p: np.ndarray, v: np.ndarray, g: np.ndarray, gv: np.ndarray, pulled: bool) -> None:
-        """One frame: ``pulled`` once the engagement has pulled up (this frame's state is the first after it)."""
-        self.min_altitude = min(self.min_altitude, float(p[2]))
-        if not pulled:
-            self._last = (p.copy(), v.copy(), g.copy(), np.asarray(gv, float).copy())
-            return
-        if self.t_pullup is None:
-            self.t_pullup = t
-            if self._last is not None:
-                lp, lv, lg, lgv = self._last
-                self.miss = predicted_miss(lp, lv, lg, lgv, self.normal)
-                self.speed_at_pullup = float(np.linalg.norm(lv))
-        self.clearance = min(self.clearance, distance_to_rect(p, g, self._basis, self.half_w, self.half_h))
-
-    def as_dict(self) -> dict:
-        return {"pulled_up": self.t_pullup is not None, "t_pullup_s": self.t_pullup, "predicted_miss_m": self.miss,
-                "clearance_m": self.clearance if math.isfinite(self.clearance) else None,
-                "speed_at_pullup_mps": self.speed_at_pullup,
-                "min_altitude_m": self.min_altitude if math.isfinite(self.min_altitude) else None}

@@ -190,3 +190,19 @@ def test_intercept_pulls_up_before_impact(sim, tmp_path):
     p = np.column_stack([tr["n"], tr["e"], tr["d"]])
     assert np.linalg.norm(p - c, axis=1).min() > 2.0
     assert gate_crossings(f) == [] or not any(c.through for c in gate_crossings(f))
+    # The outcome is the intercept's (issue 19): the judge's clearance of the target's box after the pull-up, which
+    # the logged truth confirms independently (its rows are stamped up to 50 ms late: centimetres here). The
+    # verdict is judged at the hand-back, summary.json's record at the flight's end (the landing too).
+    (ic,) = summary["truth"]["intercepts"]
+    assert summary["verdict"].startswith("intercept: pulled up") and not ic["impact"]
+    judged = float(summary["verdict"].split("cleared by ")[1].split(" m")[0])
+    n = np.array([gate["normal_n"][0], gate["normal_e"][0], gate["normal_d"][0]])
+    u = np.array([-n[1], n[0], 0.0]) / np.hypot(n[0], n[1])  # horizontal, in the target's (vertical) plane
+    half_w, half_h = (0.5 * x for x in cfg.sim.target.size(cfg.app.synthetic.radius))
+    q = p - c
+    d = np.sqrt(np.maximum(np.abs(q @ u) - half_w, 0.0) ** 2 + np.maximum(np.abs(q[:, 2]) - half_h, 0.0) ** 2
+                + (q @ n) ** 2)
+    after = tr["t"] >= f.states[path.index("RECOVER")]["t"]
+    to_handback = after & (tr["t"] <= f.states[path.index("HANDBACK")]["t"])
+    assert judged == pytest.approx(float(d[to_handback].min()), abs=0.3)
+    assert ic["clearance_m"] == pytest.approx(float(d[after].min()), abs=0.3) and ic["clearance_m"] <= judged + 0.01

@@ -176,6 +176,19 @@ def test_printed_gate_line_and_summary_truth_come_from_one_computation(tmp_path,
     assert row.d_center == g["d_center_m"]
 
 
+def test_the_printed_report_names_an_intercept_not_a_missed_gate(tmp_path, capsys):
+    """``companion sim``'s report after a pull-up: the target's plane crossing over its top is the intercept's, not
+    a gate line saying "missed"."""
+    from companion.sim.appflight import print_flight_report
+
+    summary = _flight_with_judge(tmp_path / "f")
+    summary["truth"]["intercepts"] = [{"gate": 1, "predicted_miss_m": 0.4, "clearance_m": 1.7}]
+    print_flight_report(tmp_path / "f", summary)
+    out = capsys.readouterr().out.splitlines()
+    assert not any(s.startswith("gate 1:") for s in out)
+    assert "intercept (target 1): predicted miss 0.40 m, cleared by 1.70 m (ground truth)" in out
+
+
 def test_a_log_without_the_judges_record_is_rescored(tmp_path):
     """A killed flight (summary.json still "running") or an older log: the crossings come from the topics."""
     from companion.flightlog import flight_crossings
@@ -184,3 +197,99 @@ def test_a_log_without_the_judges_record_is_rescored(tmp_path):
     (tmp_path / "f" / "summary.json").write_text('{"outcome": "running"}\n')
     f = read_flight(tmp_path / "f")
     assert flight_crossings(f) == gate_crossings(f) and len(gate_crossings(f)) == 1
+
+
+# ------------------------------------------------------------------------------ intercept with a pull-up (issue 19)
+
+W, H = 2.5, 3.0  # the paper's truck seen from behind, standing on the ground
+TRUCK_V = np.array([9.0, 0.0, 0.0])  # NED: receding north
+
+
+def truck_at(t: float) -> np.ndarray:
+    return np.array([40.0, 0.0, -1.5]) + TRUCK_V * t  # centre 1.5 m up: bottom edge on the ground
+
+
+def pull_up_track(t_pull: float, aim_e: float = 0.0, a_pull=(-5.0, 0.0, -15.0), rate: float = 20.0):
+    """A vehicle 6 m up flies straight at the truck (at its centre shifted east by ``aim_e``, reached at t = 4 s),
+    then from ``t_pull`` brakes and climbs at ``a_pull`` (NED). Returns f(t) -> (position, velocity) and the
+    sample times of a ``rate`` Hz truth stream."""
+    p0 = np.array([0.0, 0.0, -6.0])
+    v0 = (truck_at(4.0) + np.array([0.0, aim_e, 0.0]) - p0) / 4.0
+    a = np.asarray(a_pull, float)
+
+    def state(t: float) -> tuple[np.ndarray, np.ndarray]:
+        if t < t_pull:
+            return p0 + v0 * t, v0.copy()
+        s = t - t_pull
+        return p0 + v0 * t + 0.5 * a * s * s, v0 + a * s
+
+    return state, [i / rate + 0.003 for i in range(int(6.0 * rate))]
+
+
+def judge_track(t_pull: float, **kw) -> tuple[GateJudge, float, float]:
+    """The judge fed as the app feeds it (gate rows at 30 Hz, truth at 20 Hz, one clock); also the independent
+    least distance to the truck's box after the pull-up, from a 1 kHz sweep, and the true speed at it."""
+    state, ts = pull_up_track(t_pull, **kw)
+    j = GateJudge(box=(W, H))
+    events = sorted([(i / 30.0, "gate") for i in range(180)] + [(t, "truth") for t in ts])
+    for t, kind in events:
+        if kind == "gate":
+            j.gate(t, 1, truck_at(t), NORMAL, 1.5)
+        else:
+            p, v = state(t)
+            j.vehicle(t, p, v)
+    # Independent: the box spans e in [-1.25, 1.25], down in [-3, 0] in the plane n = the truck's north.
+    best = math.inf
+    for t in np.arange(t_pull, ts[-1], 0.001):
+        p, _ = state(float(t))
+        g = truck_at(float(t))
+        de = max(abs(p[1] - g[1]) - W / 2, 0.0)
+        dd = max(abs(p[2] - g[2]) - H / 2, 0.0)
+        best = min(best, math.sqrt((p[0] - g[0]) ** 2 + de * de + dd * dd))
+    return j, best, float(np.linalg.norm(state(t_pull - 1e-9)[1]))
+
+
+def test_a_pull_up_that_clears_the_target_is_ok_not_a_missed_gate():
+    """The vehicle crosses the truck's plane ~1 m over its top after the pull-up: the gate score calls that a
+    crossing 2.5 m from the centre (a "missed gate": the verdict before issue 19's judge, exit 30). The judge
+    scores it as an intercept: predicted miss 0 (it was flying at the centre), cleared by the true least
+    distance, exit OK."""
+    t_pull = 3.5
+    j, clearance, speed = judge_track(t_pull)
+    (g,) = j.results()
+    assert g.crossed and not g.through  # over the top: as a gate, a miss
+    passes = [GatePass(1, 0.5, "pulled_up", t_pull - 0.2, t_pull, "pull-up")]
+    assert verdict(passes, j.results())[0] is Reason.GATE_MISSED  # without the intercept's score (the old judge)
+    (r,) = j.intercepts(passes).values()
+    assert r.predicted_miss == pytest.approx(0.0, abs=1e-6) and r.on_target
+    assert r.clearance == pytest.approx(clearance, abs=0.02) and 0.6 < clearance < 1.0
+    assert r.speed_at_pullup == pytest.approx(speed, rel=1e-9)
+    reason, line = verdict(passes, j.results(), j.intercepts(passes))
+    assert reason is Reason.OK
+    assert line.startswith("intercept: pulled up ") and f"cleared by {r.clearance:.2f} m (ground truth)" in line
+
+
+def test_a_pull_up_that_hits_the_target_is_an_impact():
+    """Pulled up 2.5 m before the truck: the vehicle is still below its top at its plane (clearance 0)."""
+    t_pull = 3.75
+    j, clearance, _ = judge_track(t_pull)
+    passes = [GatePass(1, 0.5, "pulled_up", t_pull - 0.2, t_pull, "pull-up")]
+    (r,) = j.intercepts(passes).values()
+    assert clearance < 1e-3 and r.clearance == pytest.approx(0.0, abs=1e-6) and r.impact  # through its face
+    reason, line = verdict(passes, j.results(), j.intercepts(passes))
+    assert reason is Reason.INTERCEPT_IMPACT and int(reason) == 34
+    assert line.startswith("intercept: the pull-up did not clear target 1: came within 0.00 m")
+
+
+def test_a_pull_up_from_a_track_beside_the_target_is_a_missed_target():
+    """Flying 2 m east of the truck's centre (its half width is 1.25 m): the predicted miss is 2 m, outside
+    its box; nothing to pull up from, however well it cleared."""
+    t_pull = 3.5
+    j, _, _ = judge_track(t_pull, aim_e=2.0)
+    passes = [GatePass(1, 0.5, "pulled_up", t_pull - 0.2, t_pull, "pull-up")]
+    (r,) = j.intercepts(passes).values()
+    assert r.predicted_miss == pytest.approx(2.0, abs=1e-6) and not r.on_target and not r.impact
+    reason, line = verdict(passes, j.results(), j.intercepts(passes))
+    assert reason is Reason.TARGET_MISSED and int(reason) == 35
+    assert "predicted miss 2.00 m, outside its 2.5 x 3 m box" in line
+    assert len({int(x) for x in Reason}) == len(Reason)  # every outcome its own exit code
