@@ -90,10 +90,11 @@ class ClosingSpeedEstimator:
         cam, b = self.camera, self.p.border
         x0, y0, x1, y1 = box.xyxy
         alpha = 0.0
+        # Rays as floats (CameraModel.ray_cam_xyz, the same values as ray_cam): four rays every frame.
         if x0 > b and x1 < cam.width - b:
-            alpha = _angle(cam.ray_cam(x0, box.cy), cam.ray_cam(x1, box.cy))
+            alpha = _angle(cam.ray_cam_xyz(x0, box.cy), cam.ray_cam_xyz(x1, box.cy))
         if y0 > b and y1 < cam.height - b:
-            alpha = max(alpha, _angle(cam.ray_cam(box.cx, y0), cam.ray_cam(box.cx, y1)))
+            alpha = max(alpha, _angle(cam.ray_cam_xyz(box.cx, y0), cam.ray_cam_xyz(box.cx, y1)))
         if not (1e-6 < alpha < math.pi * 0.9):
             return None
         return self.p.gate_radius / math.tan(0.5 * alpha)
@@ -137,8 +138,8 @@ class ClosingSpeedEstimator:
         self.P = np.array([[p00 - k0 * p00, p01 - k0 * p01], [p01 - k0 * p01, p11 - k1 * p01]])
 
 
-def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    ax, ay, az = a.tolist()
-    bx, by, bz = b.tolist()
+def _angle(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
+    ax, ay, az = a
+    bx, by, bz = b
     cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
     return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.frames import euler_ned_deg_from_R, quat_wxyz_from_R
+from companion.frames import euler_ned_deg_from_rows, quat_wxyz_from_R
 
 G = 9.81
 DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 50 deg needs 1.56 g of its 2 g)
@@ -145,6 +145,32 @@ def los_rate(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> LosRate:  #
     # n = l x k_l / |k_l|: |l x k_l| = |k_l| because k_l is normal to the unit vector l.
     n = np.array([ly * kz - lz * ky, lz * kx - lx * kz, lx * ky - ly * kx]) / s
     return LosRate(angle / dt, np.array([kx, ky, kz]), n)
+
+
+def los_rate_vector(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> tuple[float, float, float]:  # noqa: E741
+    """``lambda_dot * n`` of :func:`los_rate` as three floats, the same operations bit for bit (the controller's
+    per-frame path: no LosRate and no arrays)."""
+    if l_prev is None or not (dt > 0.0) or not math.isfinite(dt):
+        return 0.0, 0.0, 0.0
+    lx, ly, lz = l.tolist()
+    px, py, pz = l_prev.tolist()
+    kx, ky, kz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px
+    s = math.sqrt(kx * kx + ky * ky + kz * kz)
+    if s < _EPS:
+        return 0.0, 0.0, 0.0
+    lam = math.atan2(s, lx * px + ly * py + lz * pz) / dt
+    return (lam * ((ly * kz - lz * ky) / s), lam * ((lz * kx - lx * kz) / s), lam * ((lx * ky - ly * kx) / s))
+
+
+def with_gamma_bar(p: GuidanceParams, gamma_bar: float) -> GuidanceParams:
+    """``dataclasses.replace(p, gamma_bar=gamma_bar)`` without its per-call cost (the ring-in-view bound changes
+    it every frame); the same validation of the new value."""
+    if not (0.0 < gamma_bar < math.pi / 2):
+        raise ValueError(f"gamma_bar must be in (0, pi/2) rad, got {gamma_bar}")
+    q = object.__new__(GuidanceParams)
+    for name in GuidanceParams.__slots__:
+        object.__setattr__(q, name, gamma_bar if name == "gamma_bar" else getattr(p, name))
+    return q
 
 
 def pn_demand(lambda_dot: float, n: np.ndarray, k_pn: float, v_rel_bar: float) -> np.ndarray:
@@ -561,7 +587,7 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
     """The one conversion from the paper's frames (ENU/FLU) to a MAVSDK setpoint (NED/FRD)."""
     R_ned_frd = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS  # = P_NED_ENU @ R_W_B @ F_FRD_FLU, without two matmuls
-    roll, pitch, yaw = euler_ned_deg_from_R(R_ned_frd)
+    roll, pitch, yaw = euler_ned_deg_from_rows(R_ned_frd.tolist())
     return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R_ned_frd)
 
 
