@@ -103,7 +103,9 @@ class ClosingSpeedEstimator:
         """Advance to frame time ``t`` with this frame's box (or None); ``range_accel`` is the range
         acceleration the vehicle's measured acceleration explains (m/s^2), None without an IMU."""
         p = self.p
-        # Scalar 2-state Kalman filter: numpy's per-call overhead on 2x2 arrays dominated this 30 Hz path.
+        # Scalar 2-state Kalman filter: numpy's per-call overhead on 2x2 arrays dominated this 30 Hz path. The
+        # prediction stays in floats until the measurement update: one pair of arrays a frame, not two.
+        predicted = False
         if self.x is not None and self.t is not None and t > self.t:
             dt = t - self.t
             imu = range_accel is not None and math.isfinite(range_accel)
@@ -115,12 +117,14 @@ class ClosingSpeedEstimator:
             # P = F P F^T + Q (white-acceleration Q)
             p00, p01, p11 = (p00 + 2.0 * dt * p01 + dt * dt * p11 + q * dt**3 / 3.0,
                              p01 + dt * p11 + q * dt * dt / 2.0, p11 + q * dt)
-            self.x = np.array([x0, x1])
-            self.P = np.array([[p00, p01], [p01, p11]])
+            predicted = True
         if self.t is None or t > self.t:
             self.t = t
         d = self.range_from_box(box) if box is not None else None
         if d is None:
+            if predicted:
+                self.x = np.array([x0, x1])
+                self.P = np.array([[p00, p01], [p01, p11]])
             return
         size = max(box.w, box.h)
         sigma = d * (p.pixel_noise * math.sqrt(2.0) / size + p.size_noise)
@@ -128,8 +132,9 @@ class ClosingSpeedEstimator:
             self.x = np.array([d, -p.v_rel_bar])
             self.P = np.diag([sigma * sigma, (0.5 * p.v_rel_bar) ** 2])
             return
-        x0, x1 = self.x.tolist()
-        (p00, p01), (_, p11) = self.P.tolist()
+        if not predicted:
+            x0, x1 = self.x.tolist()
+            (p00, p01), (_, p11) = self.P.tolist()
         s_ = p00 + sigma * sigma
         k0, k1 = p00 / s_, p01 / s_
         r = d - x0

@@ -184,6 +184,11 @@ def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # n
     Singular when the LOS is vertical (``e_z x l = 0``): then the y axis is taken from
     ``y_ref`` (default world y) made normal to ``l``, so the frame stays orthonormal.
     """
+    return np.array(_pn_frame_rows(l, y_ref))
+
+
+def _pn_frame_rows(l: np.ndarray, y_ref: np.ndarray | None = None) -> list[list[float]]:  # noqa: E741
+    """:func:`pn_frame` as nested lists of floats (rows), for the solver's scalar math."""
     lx, ly, lz = l.tolist()
     ny = math.hypot(lx, ly)
     if ny > 1e-9:
@@ -198,7 +203,7 @@ def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # n
             n = math.sqrt(yx * yx + yy * yy + yz * yz)
         yx, yy, yz = yx / n, yy / n, yz / n
     zx, zy, zz = ly * yz - lz * yy, lz * yx - lx * yz, lx * yy - ly * yx  # l x y
-    return np.array([[lx, yx, zx], [ly, yy, zy], [lz, yz, zz]])
+    return [[lx, yx, zx], [ly, yy, zy], [lz, yz, zz]]
 
 
 def roll_pitch(f_th: float, t_y: float, t_z: float) -> tuple[float, float]:
@@ -527,9 +532,10 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
     ``f_th* = |t|``, ``phi* = atan2(t_x, t_z)``, ``theta* = atan2(-t_y, hypot(t_x, t_z))``,
     ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world).
     """
-    R_W_PN = pn_frame(l, y_ref)
+    rows = _pn_frame_rows(l, y_ref)
+    R_W_PN = np.array(rows)
     ax, ay, az = a_n.tolist()
-    (_, yx, zx), (_, yy, zy), (lz, yz, zz) = R_W_PN.tolist()
+    (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
     g_y, g_z = -G * yz, -G * zz  # g^PN = R_W^PN g: its y part is 0 unless the LOS is vertical
     u = (lz, yz, zz)  # world up in the PN frame: the axis of the tilt cone
@@ -586,9 +592,12 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
     """The one conversion from the paper's frames (ENU/FLU) to a MAVSDK setpoint (NED/FRD)."""
-    R_ned_frd = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS  # = P_NED_ENU @ R_W_B @ F_FRD_FLU, without two matmuls
-    roll, pitch, yaw = euler_ned_deg_from_rows(R_ned_frd.tolist())
-    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R_ned_frd)
+    # = P_NED_ENU @ R_W_B @ F_FRD_FLU = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS, without two matmuls; in floats
+    # (x * 1.0 and x * -1.0 exactly as numpy's elementwise product, signed zeros included).
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
+    rows = [[b0 * 1.0, b1 * -1.0, b2 * -1.0], [a0 * 1.0, a1 * -1.0, a2 * -1.0], [c0 * -1.0, c1 * 1.0, c2 * 1.0]]
+    roll, pitch, yaw = euler_ned_deg_from_rows(rows)
+    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), np.array(rows))
 
 
 def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:
