@@ -91,15 +91,30 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
     Closed form rather than scipy: it runs once per camera frame in the controller, and
     building a Rotation costs more than the whole guidance solve. Tested against scipy.
     """
-    # tolist: the same floats as float() of each element, without a generator (once per frame).
-    w, x, y, z = q_wxyz.tolist() if type(q_wxyz) is np.ndarray and q_wxyz.dtype == np.float64 else (
-        float(c) for c in q_wxyz)
+    global _LAST_R
+    key = None
+    if type(q_wxyz) is np.ndarray and q_wxyz.dtype == np.float64 and q_wxyz.shape == (4,):
+        # The same frame's attitude is turned into a matrix several times (controller, engagement, hover
+        # estimate): the last one is kept, keyed on the quaternion's exact bits, and handed out as a copy.
+        key = q_wxyz.tobytes()
+        last_key, last_R = _LAST_R
+        if key == last_key:
+            return last_R.copy()
+        w, x, y, z = q_wxyz.tolist()  # the same floats as float() of each element
+    else:
+        w, x, y, z = (float(c) for c in q_wxyz)
     n = w * w + x * x + y * y + z * z
     if not (n > 1e-12 and math.isfinite(n)):
         raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
     s = 2.0 / n
-    return np.array([
+    R = np.array([
         [1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
         [s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w)],
         [s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y)],
     ])
+    if key is not None:
+        _LAST_R = (key, R.copy())  # one tuple rebinding: a reader on another thread sees a matching pair
+    return R
+
+
+_LAST_R: tuple[bytes | None, np.ndarray] = (None, np.eye(3))
