@@ -23,14 +23,13 @@ specific force over the cosine of the tilt, ``-f_ned_z / R_zz``, which removes e
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from pydantic import Field
 
 from companion.configbase import Deg, MetersPerSecond2, Number, Seconds, Section
-from companion.fastreplace import replace  # per frame: the stdlib one cost ~3x more
 
 G = 9.81
 

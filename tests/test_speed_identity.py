@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from companion import fastreplace, guidance
+from companion import guidance
 from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, euler_ned_deg_from_rows
 from perception.los import CameraModel, LosFilter
 
@@ -72,22 +72,6 @@ def test_with_gamma_bar_is_replace() -> None:
     assert gp.gamma_bar == 0.3
     with pytest.raises(ValueError, match="gamma_bar"):
         guidance.with_gamma_bar(gp, -0.1)
-
-
-def test_fastreplace_matches_stdlib() -> None:
-    gp = guidance.GuidanceParams(k_pn=3.0, v_rel_bar=15.0, gamma_bar=0.3, f_max=19.6, f_min=1.0)
-    assert fastreplace.replace(gp, f_min=2.0) == dataclasses.replace(gp, f_min=2.0)
-    with pytest.raises(ValueError, match="f_min"):  # the class's validation still runs
-        fastreplace.replace(gp, f_min=30.0)
-
-    @dataclasses.dataclass
-    class D:
-        a: int
-        b: int = dataclasses.field(default=5, init=False)
-
-    with pytest.raises(ValueError, match="init=False"):
-        fastreplace.replace(D(1), b=3)
-    assert fastreplace.replace(D(1), a=2) == dataclasses.replace(D(1), a=2)
 
 
 def test_euler_rows_and_quat_cache() -> None:
