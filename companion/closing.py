@@ -90,10 +90,11 @@ class ClosingSpeedEstimator:
         cam, b = self.camera, self.p.border
         x0, y0, x1, y1 = box.xyxy
         alpha = 0.0
+        # Rays as floats (CameraModel.ray_cam_xyz, the same values as ray_cam): four rays every frame.
         if x0 > b and x1 < cam.width - b:
-            alpha = _angle(cam.ray_cam(x0, box.cy), cam.ray_cam(x1, box.cy))
+            alpha = _angle(cam.ray_cam_xyz(x0, box.cy), cam.ray_cam_xyz(x1, box.cy))
         if y0 > b and y1 < cam.height - b:
-            alpha = max(alpha, _angle(cam.ray_cam(box.cx, y0), cam.ray_cam(box.cx, y1)))
+            alpha = max(alpha, _angle(cam.ray_cam_xyz(box.cx, y0), cam.ray_cam_xyz(box.cx, y1)))
         if not (1e-6 < alpha < math.pi * 0.9):
             return None
         return self.p.gate_radius / math.tan(0.5 * alpha)
@@ -102,7 +103,9 @@ class ClosingSpeedEstimator:
         """Advance to frame time ``t`` with this frame's box (or None); ``range_accel`` is the range
         acceleration the vehicle's measured acceleration explains (m/s^2), None without an IMU."""
         p = self.p
-        # Scalar 2-state Kalman filter: numpy's per-call overhead on 2x2 arrays dominated this 30 Hz path.
+        # Scalar 2-state Kalman filter: numpy's per-call overhead on 2x2 arrays dominated this 30 Hz path. The
+        # prediction stays in floats until the measurement update: one pair of arrays a frame, not two.
+        predicted = False
         if self.x is not None and self.t is not None and t > self.t:
             dt = t - self.t
             imu = range_accel is not None and math.isfinite(range_accel)
@@ -114,12 +117,14 @@ class ClosingSpeedEstimator:
             # P = F P F^T + Q (white-acceleration Q)
             p00, p01, p11 = (p00 + 2.0 * dt * p01 + dt * dt * p11 + q * dt**3 / 3.0,
                              p01 + dt * p11 + q * dt * dt / 2.0, p11 + q * dt)
-            self.x = np.array([x0, x1])
-            self.P = np.array([[p00, p01], [p01, p11]])
+            predicted = True
         if self.t is None or t > self.t:
             self.t = t
         d = self.range_from_box(box) if box is not None else None
         if d is None:
+            if predicted:
+                self.x = np.array([x0, x1])
+                self.P = np.array([[p00, p01], [p01, p11]])
             return
         size = max(box.w, box.h)
         sigma = d * (p.pixel_noise * math.sqrt(2.0) / size + p.size_noise)
@@ -127,8 +132,9 @@ class ClosingSpeedEstimator:
             self.x = np.array([d, -p.v_rel_bar])
             self.P = np.diag([sigma * sigma, (0.5 * p.v_rel_bar) ** 2])
             return
-        x0, x1 = self.x.tolist()
-        (p00, p01), (_, p11) = self.P.tolist()
+        if not predicted:
+            x0, x1 = self.x.tolist()
+            (p00, p01), (_, p11) = self.P.tolist()
         s_ = p00 + sigma * sigma
         k0, k1 = p00 / s_, p01 / s_
         r = d - x0
@@ -137,8 +143,8 @@ class ClosingSpeedEstimator:
         self.P = np.array([[p00 - k0 * p00, p01 - k0 * p01], [p01 - k0 * p01, p11 - k1 * p01]])
 
 
-def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    ax, ay, az = a.tolist()
-    bx, by, bz = b.tolist()
+def _angle(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
+    ax, ay, az = a
+    bx, by, bz = b
     cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
     return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)

@@ -366,7 +366,7 @@ class PNController:
             return gp
         g = guidance.ring_view_gamma(gp.gamma_bar, self._half_fov, self._ring_angle(box), self.p.view_margin,
                                      min(self.p.gamma_min, gp.gamma_bar))
-        return gp if g >= gp.gamma_bar else replace(gp, gamma_bar=g)
+        return gp if g >= gp.gamma_bar else guidance.with_gamma_bar(gp, g)
 
     def _pn(self, t: float, l_enu: np.ndarray, R_ned_frd: np.ndarray, box: BoundingBox | None = None) -> ControlOutput:
         dt = t - self._t_prev if self._t_prev is not None else 0.0
@@ -385,8 +385,8 @@ class PNController:
             lambda_dot, n = self._smooth_rate(l_f, self._kf.rate, dt)
         else:
             l_f = self._filter.update(t, l_enu)
-            rate = guidance.los_rate(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
-            lambda_dot, n = self._smooth_rate(l_f, rate.lambda_dot * rate.n, dt)
+            w_xyz = guidance.los_rate_vector(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
+            lambda_dot, n = self._smooth_rate(l_f, w_xyz, dt)
         self._lam = lambda_dot
         l_sol = l_f
         if self.p.delay_prediction:
@@ -403,7 +403,7 @@ class PNController:
             y_pn = _y_pn(l_f)
             if y_pn is not None:
                 a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
-        sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._body_y_enu(R_ned_frd))
+        sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
@@ -417,13 +417,14 @@ class PNController:
         return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
                              v_rel)
 
-    def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
+    def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray | tuple[float, float, float],
+                     dt: float) -> tuple[float, np.ndarray]:
         """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies
         pixel noise, and k_PN v_rel_bar (~30 m/s) turns it into thrust jitter. Kept normal to the LOS."""
-        wx, wy, wz = w.tolist()  # scalar math: this runs every frame
+        wx, wy, wz = w.tolist() if isinstance(w, np.ndarray) else w  # scalar math: this runs every frame
         if self.p.rate_cutoff_hz > 0.0:
             if self._w is None or not (0.0 < dt <= self.p.max_dt):
-                self._w = w.copy()
+                self._w = np.array([wx, wy, wz])
             else:
                 beta = 1.0 - math.exp(-2.0 * math.pi * self._rate_cutoff() * dt)
                 ox, oy, oz = self._w.tolist()
@@ -461,9 +462,16 @@ class PNController:
             return ControlOutput(t, sp, "hover", None, 0.0, zero, 0.0, guidance.G, rejected)
         # Coast: keep flying along the last inertial LOS with no PN demand until the box returns
         # (the app's safety layer decides when "lost" becomes an abort).
-        sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._body_y_enu(R_ned_frd))
+        sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._y_ref(self._l_prev, R_ned_frd))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
         return ControlOutput(t, sp, "coast", P_NED_ENU @ self._l_prev, 0.0, zero, sol.demand_scale, sol.f_th, rejected)
+
+    @staticmethod
+    def _y_ref(l_enu: np.ndarray, R_ned_frd: np.ndarray) -> np.ndarray | None:
+        """The solver's y_ref: pn_frame reads it only at a vertical LOS (its own test, ``hypot(l_x, l_y) <= 1e-9``),
+        so elsewhere it is not built (a slice, a matmul and a negation every frame)."""
+        lx, ly, _ = l_enu.tolist()
+        return None if math.hypot(lx, ly) > 1e-9 else PNController._body_y_enu(R_ned_frd)
 
     @staticmethod
     def _body_y_enu(R_ned_frd: np.ndarray) -> np.ndarray:

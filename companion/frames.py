@@ -55,16 +55,21 @@ def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:
     Closed form (the same as scipy's ``as_euler('ZYX')`` away from gimbal lock) because this is on
     the 30 Hz hot path and scipy's object construction costs tens of microseconds.
     """
-    r20 = min(1.0, max(-1.0, float(R_ned_frd[2, 0])))
-    pitch = -math.asin(r20)
-    if math.hypot(float(R_ned_frd[2, 1]), float(R_ned_frd[2, 2])) < 1e-7:
+    return euler_ned_deg_from_rows(np.asarray(R_ned_frd, dtype=float).tolist())
+
+
+def euler_ned_deg_from_rows(R: list[list[float]]) -> tuple[float, float, float]:
+    """:func:`euler_ned_deg_from_R` of a rotation given as nested lists of floats (``R.tolist()``)."""
+    (r00, r01, _), (r10, r11, _), (r20, r21, r22) = R
+    pitch = -math.asin(min(1.0, max(-1.0, r20)))
+    if math.hypot(r21, r22) < 1e-7:
         # Gimbal lock (nose straight up or down): only yaw - roll is defined; take roll = 0,
         # then body y = Rz(yaw) e_y gives the yaw.
         roll = 0.0
-        yaw = math.atan2(-float(R_ned_frd[0, 1]), float(R_ned_frd[1, 1]))
+        yaw = math.atan2(-r01, r11)
     else:
-        roll = math.atan2(float(R_ned_frd[2, 1]), float(R_ned_frd[2, 2]))
-        yaw = math.atan2(float(R_ned_frd[1, 0]), float(R_ned_frd[0, 0]))
+        roll = math.atan2(r21, r22)
+        yaw = math.atan2(r10, r00)
     return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
 
 
@@ -86,13 +91,30 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
     Closed form rather than scipy: it runs once per camera frame in the controller, and
     building a Rotation costs more than the whole guidance solve. Tested against scipy.
     """
-    w, x, y, z = (float(c) for c in q_wxyz)
+    global _LAST_R
+    key = None
+    if type(q_wxyz) is np.ndarray and q_wxyz.dtype == np.float64 and q_wxyz.shape == (4,):
+        # The same frame's attitude is turned into a matrix several times (controller, engagement, hover
+        # estimate): the last one is kept, keyed on the quaternion's exact bits, and handed out as a copy.
+        key = q_wxyz.tobytes()
+        last_key, last_R = _LAST_R
+        if key == last_key:
+            return last_R.copy()
+        w, x, y, z = q_wxyz.tolist()  # the same floats as float() of each element
+    else:
+        w, x, y, z = (float(c) for c in q_wxyz)
     n = w * w + x * x + y * y + z * z
     if not (n > 1e-12 and math.isfinite(n)):
         raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
     s = 2.0 / n
-    return np.array([
+    R = np.array([
         [1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
         [s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w)],
         [s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y)],
     ])
+    if key is not None:
+        _LAST_R = (key, R.copy())  # one tuple rebinding: a reader on another thread sees a matching pair
+    return R
+
+
+_LAST_R: tuple[bytes | None, np.ndarray] = (None, np.eye(3))

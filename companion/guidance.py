@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.frames import euler_ned_deg_from_R, quat_wxyz_from_R
+from companion.frames import euler_ned_deg_from_rows, quat_wxyz_from_R
 
 G = 9.81
 DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 50 deg needs 1.56 g of its 2 g)
@@ -147,6 +147,32 @@ def los_rate(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> LosRate:  #
     return LosRate(angle / dt, np.array([kx, ky, kz]), n)
 
 
+def los_rate_vector(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> tuple[float, float, float]:  # noqa: E741
+    """``lambda_dot * n`` of :func:`los_rate` as three floats, the same operations bit for bit (the controller's
+    per-frame path: no LosRate and no arrays)."""
+    if l_prev is None or not (dt > 0.0) or not math.isfinite(dt):
+        return 0.0, 0.0, 0.0
+    lx, ly, lz = l.tolist()
+    px, py, pz = l_prev.tolist()
+    kx, ky, kz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px
+    s = math.sqrt(kx * kx + ky * ky + kz * kz)
+    if s < _EPS:
+        return 0.0, 0.0, 0.0
+    lam = math.atan2(s, lx * px + ly * py + lz * pz) / dt
+    return (lam * ((ly * kz - lz * ky) / s), lam * ((lz * kx - lx * kz) / s), lam * ((lx * ky - ly * kx) / s))
+
+
+def with_gamma_bar(p: GuidanceParams, gamma_bar: float) -> GuidanceParams:
+    """``dataclasses.replace(p, gamma_bar=gamma_bar)`` without its per-call cost (the ring-in-view bound changes
+    it every frame); the same validation of the new value."""
+    if not (0.0 < gamma_bar < math.pi / 2):
+        raise ValueError(f"gamma_bar must be in (0, pi/2) rad, got {gamma_bar}")
+    q = object.__new__(GuidanceParams)
+    for name in GuidanceParams.__slots__:
+        object.__setattr__(q, name, gamma_bar if name == "gamma_bar" else getattr(p, name))
+    return q
+
+
 def pn_demand(lambda_dot: float, n: np.ndarray, k_pn: float, v_rel_bar: float) -> np.ndarray:
     """eq:meth_pn_guidance_law: ``a_n = k_PN * v_rel_bar * lambda_dot * n``."""
     return (k_pn * v_rel_bar * lambda_dot) * n
@@ -158,6 +184,11 @@ def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # n
     Singular when the LOS is vertical (``e_z x l = 0``): then the y axis is taken from
     ``y_ref`` (default world y) made normal to ``l``, so the frame stays orthonormal.
     """
+    return np.array(_pn_frame_rows(l, y_ref))
+
+
+def _pn_frame_rows(l: np.ndarray, y_ref: np.ndarray | None = None) -> list[list[float]]:  # noqa: E741
+    """:func:`pn_frame` as nested lists of floats (rows), for the solver's scalar math."""
     lx, ly, lz = l.tolist()
     ny = math.hypot(lx, ly)
     if ny > 1e-9:
@@ -172,7 +203,7 @@ def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # n
             n = math.sqrt(yx * yx + yy * yy + yz * yz)
         yx, yy, yz = yx / n, yy / n, yz / n
     zx, zy, zz = ly * yz - lz * yy, lz * yx - lx * yz, lx * yy - ly * yx  # l x y
-    return np.array([[lx, yx, zx], [ly, yy, zy], [lz, yz, zz]])
+    return [[lx, yx, zx], [ly, yy, zy], [lz, yz, zz]]
 
 
 def roll_pitch(f_th: float, t_y: float, t_z: float) -> tuple[float, float]:
@@ -501,9 +532,10 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
     ``f_th* = |t|``, ``phi* = atan2(t_x, t_z)``, ``theta* = atan2(-t_y, hypot(t_x, t_z))``,
     ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world).
     """
-    R_W_PN = pn_frame(l, y_ref)
+    rows = _pn_frame_rows(l, y_ref)
+    R_W_PN = np.array(rows)
     ax, ay, az = a_n.tolist()
-    (_, yx, zx), (_, yy, zy), (lz, yz, zz) = R_W_PN.tolist()
+    (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
     g_y, g_z = -G * yz, -G * zz  # g^PN = R_W^PN g: its y part is 0 unless the LOS is vertical
     u = (lz, yz, zz)  # world up in the PN frame: the axis of the tilt cone
@@ -560,9 +592,12 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
     """The one conversion from the paper's frames (ENU/FLU) to a MAVSDK setpoint (NED/FRD)."""
-    R_ned_frd = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS  # = P_NED_ENU @ R_W_B @ F_FRD_FLU, without two matmuls
-    roll, pitch, yaw = euler_ned_deg_from_R(R_ned_frd)
-    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R_ned_frd)
+    # = P_NED_ENU @ R_W_B @ F_FRD_FLU = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS, without two matmuls; in floats
+    # (x * 1.0 and x * -1.0 exactly as numpy's elementwise product, signed zeros included).
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
+    rows = [[b0 * 1.0, b1 * -1.0, b2 * -1.0], [a0 * 1.0, a1 * -1.0, a2 * -1.0], [c0 * -1.0, c1 * 1.0, c2 * 1.0]]
+    roll, pitch, yaw = euler_ned_deg_from_rows(rows)
+    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), np.array(rows))
 
 
 def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:

@@ -41,8 +41,15 @@ class OwnMotion:
             eff = np.zeros(3)
         else:
             t0, a0, e0 = prev
-            eff = a0 + (e0 - a0) * math.exp(-(t - t0) / tau) if tau > 0.0 else a0.copy()
-        self._hist.append((t, np.asarray(a, dtype=float).copy(), eff))
+            if tau > 0.0:
+                # a0 + (e0 - a0) exp(-(t - t0) / tau), element by element in floats: the same values as the array
+                # expression without three temporary arrays (once per frame).
+                c = math.exp(-(t - t0) / tau)
+                (ax, ay, az), (ex, ey, ez) = a0.tolist(), e0.tolist()
+                eff = np.array([ax + (ex - ax) * c, ay + (ey - ay) * c, az + (ez - az) * c])
+            else:
+                eff = a0.copy()
+        self._hist.append((t, np.array(a, dtype=float), eff))
         self._t.append(t)
         horizon = t - HISTORY_S
         while len(self._hist) > 2 and self._hist[1][0] < horizon:

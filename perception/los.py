@@ -31,6 +31,9 @@ class CameraModel:
     def __post_init__(self) -> None:
         # Cached for the hot path: the inverse intrinsics and the flag that lets us skip cv2.
         object.__setattr__(self, "_K_inv", np.linalg.inv(self.K))
+        Ki = self._K_inv  # type: ignore[attr-defined]
+        object.__setattr__(self, "_K_inv_scalars", (float(Ki[0, 0]), float(Ki[0, 1]), float(Ki[0, 2]),
+                                                    float(Ki[1, 1]), float(Ki[1, 2])))
         object.__setattr__(self, "_distorted", bool(self.dist.size and np.any(self.dist != 0.0)))
 
     @classmethod
@@ -45,17 +48,22 @@ class CameraModel:
 
     def ray_cam(self, u: float, v: float) -> np.ndarray:
         """Unit ray in the camera frame through pixel (u, v), distortion removed."""
+        return np.array(self.ray_cam_xyz(u, v))
+
+    def ray_cam_xyz(self, u: float, v: float) -> tuple[float, float, float]:
+        """:meth:`ray_cam` as three floats (the same values, bit for bit): the closing-speed range needs four
+        rays a frame, and a numpy array per ray cost more than the arithmetic."""
         if self._distorted:
             # OpenCV's default 5 iterations leave ~0.2 px error in the corners of a wide lens.
             pts = cv2.undistortPoints(np.array([[[u, v]]], dtype=np.float64), self.K, self.dist,
                                       R=_I3, P=_I3, criteria=_UNDISTORT_CRITERIA)
             x, y = float(pts[0, 0, 0]), float(pts[0, 0, 1])
         else:
-            Ki = self._K_inv
-            x = Ki[0, 0] * u + Ki[0, 1] * v + Ki[0, 2]
-            y = Ki[1, 1] * v + Ki[1, 2]
-        r = np.array([x, y, 1.0])
-        return r / math.sqrt(x * x + y * y + 1.0)
+            k00, k01, k02, k11, k12 = self._K_inv_scalars
+            x = k00 * u + k01 * v + k02
+            y = k11 * v + k12
+        n = math.sqrt(x * x + y * y + 1.0)
+        return x / n, y / n, 1.0 / n
 
     def ray_body(self, u: float, v: float) -> np.ndarray:
         """Unit ray in body FRD through pixel (u, v)."""
@@ -104,10 +112,12 @@ class LosFilter:
             self.value = np.asarray(l, dtype=float).copy()
         else:
             alpha = 1.0 - math.exp(-2.0 * math.pi * self.cutoff_hz * (t - self.t))
-            v = self.value + alpha * (l - self.value)
-            nv = math.sqrt(float(v @ v))
+            # Scalar math (the same operations as the array form, bit for bit): this runs every frame.
+            (ox, oy, oz), (lx, ly, lz) = self.value.tolist(), np.asarray(l, dtype=float).tolist()
+            vx, vy, vz = ox + alpha * (lx - ox), oy + alpha * (ly - oy), oz + alpha * (lz - oz)
+            nv = math.sqrt(vx * vx + vy * vy + vz * vz)
             # Opposite vectors can cancel; then the new measurement is all we have.
-            self.value = v / nv if nv > 1e-9 else np.asarray(l, dtype=float).copy()
+            self.value = np.array([vx / nv, vy / nv, vz / nv]) if nv > 1e-9 else np.asarray(l, dtype=float).copy()
         self.t = t
         return self.value
 

@@ -29,7 +29,7 @@ the camera or cut by the border gives the extent of what is in view): its box is
 from __future__ import annotations
 
 import math
-from functools import lru_cache
+from functools import cache, lru_cache
 from typing import Any
 
 import cv2
@@ -227,7 +227,7 @@ class GeometricCamera:
 
     def _outline_extent(self, rim: np.ndarray) -> tuple[float, float, float, float] | None:
         """Pixel extent inside the image of a closed outline (camera-frame samples, in order)."""
-        nxt = np.roll(np.arange(rim.shape[0]), -1)
+        nxt = _next_index(rim.shape[0])
         front = rim[:, 2] > 1e-3
         if front.all():
             px = self.project(rim)
@@ -276,6 +276,14 @@ class GeometricCamera:
         w = max(box.w + n[2], 1.0)
         h = max(box.h + n[3], 1.0)
         return BoundingBox(cx, cy, w, h, 1.0, t)
+
+
+@cache
+def _next_index(n: int) -> np.ndarray:
+    """``np.roll(np.arange(n), -1)``: each outline sample's successor (cached: the same few sizes every frame)."""
+    idx = np.roll(np.arange(n), -1)
+    idx.flags.writeable = False
+    return idx
 
 
 def true_camera_config(cfg: Any) -> Any:

@@ -318,9 +318,8 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """xyzw quaternion (w >= 0) of a rotation matrix, Shepperd's method (numerically safe branch)."""
-    m00, m01, m02 = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
-    m10, m11, m12 = float(R[1, 0]), float(R[1, 1]), float(R[1, 2])
-    m20, m21, m22 = float(R[2, 0]), float(R[2, 1]), float(R[2, 2])
+    # tolist: the same floats as float() of each element, in one call (every frame).
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(R, dtype=float).tolist()
     tr = m00 + m11 + m22
     if tr >= max(m00, m11, m22):
         r = math.sqrt(1.0 + tr)

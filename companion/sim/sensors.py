@@ -57,11 +57,12 @@ class Sensors:
         """The estimate as PX4 reports it: scalar-first quaternion, body FRD -> world NED."""
         # Quaternion algebra on floats: this runs every frame (scipy costs ~30 us per call).
         sig = math.radians(self.cfg.attitude_noise)
-        n = self.rng.normal(0.0, 1.0, 3) * sig if sig > 0 else (0.0, 0.0, 0.0)
-        a = math.sqrt(float(n[0]) ** 2 + float(n[1]) ** 2 + float(n[2]) ** 2)
+        n0, n1, n2 = (self.rng.normal(0.0, 1.0, 3) * sig).tolist() if sig > 0 else (0.0, 0.0, 0.0)
+        a = math.sqrt(n0 ** 2 + n1 ** 2 + n2 ** 2)
         k = math.sin(0.5 * a) / a if a > 1e-12 else 0.5
-        q_noise = (float(n[0]) * k, float(n[1]) * k, float(n[2]) * k, math.cos(0.5 * a))
-        q = qmul(qmul(tuple(float(c) for c in q_true_xyzw), self._q_bias), q_noise)
+        q_noise = (n0 * k, n1 * k, n2 * k, math.cos(0.5 * a))
+        q_true = q_true_xyzw.tolist() if isinstance(q_true_xyzw, np.ndarray) else [float(c) for c in q_true_xyzw]
+        q = qmul(qmul(tuple(q_true), self._q_bias), q_noise)
         x, y, z, w = qmul(qmul(_Q_P, q), _Q_F)
         return np.array([w, x, y, z]) if w >= 0 else np.array([-w, -x, -y, -z])
 

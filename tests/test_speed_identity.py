@@ -1,0 +1,102 @@
+"""The per-frame fast paths of issue 21 item 3 return the same floats, bit for bit, as the code they replace
+(the suites' results must not move): each is checked against the array / stdlib form it stands in for."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from companion import guidance
+from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, euler_ned_deg_from_rows
+from perception.los import CameraModel, LosFilter
+
+RNG = np.random.default_rng(21)
+
+
+def _camera(dist: list[float] | None = None) -> CameraModel:
+    K = np.array([[410.0, 0.0, 321.3], [0.0, 405.5, 238.7], [0.0, 0.0, 1.0]])
+    return CameraModel(K, np.array(dist or []), np.eye(3), 640, 480)
+
+
+@pytest.mark.parametrize("dist", [None, [-0.1, 0.02, 0.0, 0.0, 0.0]])
+def test_ray_cam_xyz_is_ray_cam(dist: list[float] | None) -> None:
+    cam = _camera(dist)
+    K_inv = np.linalg.inv(cam.K)
+    for u, v in RNG.uniform([-50, -50], [700, 530], size=(300, 2)):
+        xyz = cam.ray_cam_xyz(float(u), float(v))
+        assert np.array(xyz).tobytes() == cam.ray_cam(float(u), float(v)).tobytes()
+        if dist is None:  # the old array form, written out
+            x = K_inv[0, 0] * u + K_inv[0, 1] * v + K_inv[0, 2]
+            y = K_inv[1, 1] * v + K_inv[1, 2]
+            old = np.array([x, y, 1.0]) / math.sqrt(x * x + y * y + 1.0)
+            assert np.array(xyz).tobytes() == old.tobytes()
+
+
+def test_los_filter_scalar_equals_array_form() -> None:
+    f = LosFilter(3.0)
+    value = None
+    for k in range(300):
+        l = RNG.normal(size=3)  # noqa: E741
+        l = l / np.linalg.norm(l)  # noqa: E741
+        t = k / 30.0
+        out = f.update(t, l)
+        if value is None:
+            value = l.copy()
+        else:
+            alpha = 1.0 - math.exp(-2.0 * math.pi * 3.0 * (t - (k - 1) / 30.0))
+            v = value + alpha * (l - value)
+            value = v / math.sqrt(float(v @ v))
+        assert out.tobytes() == value.tobytes()
+
+
+def test_los_rate_vector_is_lambda_dot_n() -> None:
+    for _ in range(500):
+        a, b = RNG.normal(size=3), RNG.normal(size=3)
+        a /= np.linalg.norm(a)
+        b = a + RNG.uniform(1e-9, 0.3) * b
+        b /= np.linalg.norm(b)
+        dt = float(RNG.uniform(0.01, 0.1))
+        r = guidance.los_rate(a, b, dt)
+        assert np.array(guidance.los_rate_vector(a, b, dt)).tobytes() == (r.lambda_dot * r.n).tobytes()
+    assert guidance.los_rate_vector(a, None, 0.03) == (0.0, 0.0, 0.0)
+    assert guidance.los_rate_vector(a, a, 0.03) == (0.0, 0.0, 0.0)
+
+
+def test_with_gamma_bar_is_replace() -> None:
+    gp = guidance.GuidanceParams(k_pn=3.0, v_rel_bar=15.0, gamma_bar=0.3, f_max=19.6, f_min=1.0)
+    q = guidance.with_gamma_bar(gp, 0.1)
+    assert q == dataclasses.replace(gp, gamma_bar=0.1)
+    assert gp.gamma_bar == 0.3
+    with pytest.raises(ValueError, match="gamma_bar"):
+        guidance.with_gamma_bar(gp, -0.1)
+
+
+def test_euler_rows_and_quat_cache() -> None:
+    for _ in range(300):
+        q = RNG.normal(size=4)
+        R = R_from_quat_wxyz(q)
+        R2 = R_from_quat_wxyz(q)  # the cached one: equal, not the same object
+        assert R2.tobytes() == R.tobytes() and R2 is not R
+        R2[0, 0] = 7.0
+        assert R_from_quat_wxyz(q).tobytes() == R.tobytes()  # a caller's edit does not reach the cache
+        assert R_from_quat_wxyz(list(q)).tobytes() == R.tobytes()
+        # the old element-wise form
+        w, x, y, z = (float(c) for c in q)
+        s = 2.0 / (w * w + x * x + y * y + z * z)
+        assert R[1, 2] == s * (y * z - x * w) and R[2, 0] == s * (x * z - y * w)
+        assert euler_ned_deg_from_rows(R.tolist()) == euler_ned_deg_from_R(R)
+    assert R_from_quat_wxyz(-0.0 * np.array([1.0, 1.0, 1.0, 1.0]) + np.array([1.0, 0.0, 0.0, 0.0])) is not None
+
+
+def test_to_setpoint_rows_match_array_form() -> None:
+    from scipy.spatial.transform import Rotation
+
+    for _ in range(200):
+        R_W_B = Rotation.random(random_state=int(RNG.integers(1 << 30))).as_matrix()
+        sp = guidance.to_setpoint(R_W_B, 9.0, 0.5, 0.05)
+        old = R_W_B[[1, 0, 2]] * np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])
+        assert sp.R_ned_frd.tobytes() == old.tobytes()
+        assert (sp.roll_deg, sp.pitch_deg, sp.yaw_deg) == euler_ned_deg_from_R(old)
