@@ -132,8 +132,9 @@ class Pipeline:
     """``process(frame, t) -> BoundingBox | None`` for one target; ``stats`` counts what happened."""
 
     def __init__(self, detector: Detector, pc: PerceptionConfig, width: int, height: int,
-                 tracker: NanoTracker | None = None) -> None:
+                 tracker: NanoTracker | None = None, appearance: bool = False) -> None:
         self.det = detector
+        self.appearance = appearance  # attach the box's appearance descriptor (only the appearance rule reads it)
         self.pc = pc
         self.width, self.height = int(width), int(height)
         self.tracker = tracker
@@ -148,7 +149,8 @@ class Pipeline:
         pc = cfg.perception
         det = detector if detector is not None else Detector.from_config(pc, real_frames)
         trk = NanoTracker(pc.nanotrack_backbone, pc.nanotrack_neckhead) if pc.tracker == "nanotrack" else None
-        return cls(det, pc, cfg.camera.width, cfg.camera.height, trk)
+        v = cfg.app.verify
+        return cls(det, pc, cfg.camera.width, cfg.camera.height, trk, appearance=v.enabled and v.min_similarity > 0)
 
     def reset(self) -> None:
         self.kf: BoxKalman | None = None
@@ -183,8 +185,8 @@ class Pipeline:
             out = self._clip(out)
         if out is not None:
             st.boxes += 1
-            # What the box shows, for the engagement's target verification (companion/verify.py).
-            out = replace(out, appearance=descriptor(frame, out))
+            if self.appearance:  # what the box shows, for verification's appearance rule (companion/verify.py)
+                out = replace(out, appearance=descriptor(frame, out))
         st.total_ms.append((time.perf_counter() - t0) * 1e3)
         return out
 

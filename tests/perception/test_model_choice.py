@@ -17,3 +17,11 @@ def test_a_real_camera_runs_the_real_world_model_unless_the_config_names_one():
     assert Detector.from_config(named.perception, real_frames=True).path == SHIPPED_MODEL
     # The in-process studies and anything that does not say its frames are real keep the default model.
     assert Pipeline.from_config(cam).det.path == SHIPPED_MODEL
+
+
+def test_the_appearance_descriptor_is_computed_only_when_its_rule_is_on():
+    """Every box's histogram costs ~0.1 ms per frame; only verification's appearance rule reads it."""
+    assert not Pipeline.from_config(load_config([], [])).appearance  # min_similarity 0: the rule is off
+    assert Pipeline.from_config(load_config([], ["app.verify.min_similarity=0.5"])).appearance
+    assert not Pipeline.from_config(load_config([], ["app.verify.min_similarity=0.5",
+                                                     "app.verify.enabled=false"])).appearance
