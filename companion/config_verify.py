@@ -31,7 +31,9 @@ class VerifyConfig(Section):
 
 
 class ConfirmConfig(Section):
-    """The operator's confirmation (app.engage: confirm): an RC switch read from PX4 (RC_CHANNELS)."""
+    """The operator's confirmation (app.engage: confirm): an RC switch read from PX4 (RC_CHANNELS), or a command
+    from the ground station (COMMAND_LONG to the companion's own ids, forwarded by PX4). Either confirms, either
+    withdraws."""
 
     rc_channel: int = Field(7, ge=1, le=18, description="RC channel of the engage switch (1-based, RC_CHANNELS)")
     threshold: Number = Field(
@@ -39,6 +41,13 @@ class ConfirmConfig(Section):
         "(RC_CHANNELS chanN_raw, PWM microseconds)")
     max_age: Seconds = Field(
         0.5, gt=0.0, le=10.0, description="s; an RC reading older than this counts as the switch off")
+    command: int = Field(
+        31010, ge=0, le=65535, description="MAVLink command id the ground station sends to the companion's own "
+        "system/component id to confirm (param1 1) or withdraw (param1 0); default MAV_CMD_USER_1 (31010); 0: no "
+        "ground-station command, the RC switch only")
+    gcs_max_age: Seconds = Field(
+        3.0, gt=0.0, le=60.0, description="s; a confirmation from the ground station is withdrawn when no HEARTBEAT "
+        "from that ground station arrived for this long (PX4 forwards them; ground stations send 1 Hz)")
 
 
 class LiveViewConfig(Section):

@@ -5,12 +5,21 @@ from __future__ import annotations
 import numpy as np
 
 from companion.config import load_config
-from companion.confirm import ConfirmParams, OperatorConfirm, RcReading, engage_mode
+from companion.confirm import (
+    ACCEPTED,
+    DENIED,
+    TEMPORARILY_REJECTED,
+    ConfirmParams,
+    GcsCommand,
+    OperatorConfirm,
+    RcReading,
+    engage_mode,
+)
 from companion.controller import PNController
 from companion.engagement import Engagement, Phase
 from perception.types import BoundingBox
 
-P = ConfirmParams(channel=3, threshold_us=1700.0, max_age=0.5)
+P = ConfirmParams(channel=3, threshold_us=1700.0, max_age=0.5, gcs_max_age=2.0)
 LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
 
 
@@ -71,3 +80,58 @@ def test_engagement_waits_for_confirmation_and_aborts_when_withdrawn() -> None:
     e = Engagement.from_config(cfg, PNController.from_config(cfg))
     phases = [e.step(k / 30, b, LEVEL, 10.0).phase for k in range(n)]
     assert phases[-1] is Phase.ENGAGE
+
+
+def gcs(t: float, p1: float, sysid: int = 255, compid: int = 190) -> GcsCommand:
+    return GcsCommand(t, p1, sysid, compid)
+
+
+def test_gcs_confirm_counts_only_while_a_candidate_waits() -> None:
+    c = OperatorConfirm(P)
+    assert c.command(0.0, gcs(0.0, 1), awaiting=False)[0] == TEMPORARILY_REJECTED
+    assert c.step(0.1, None, awaiting=True) is False  # the refused confirm was not kept for later
+    assert c.command(0.2, gcs(0.2, 1), awaiting=True) == (ACCEPTED, "confirmed from the ground station")
+    assert c.step(0.3, None, awaiting=False) is True and c.by == "gcs"  # no RC at all: lasts (GCS heard)
+    assert c.command(0.4, gcs(0.4, 1), awaiting=False)[0] == ACCEPTED  # a resend while confirmed
+    assert c.command(0.5, gcs(0.5, 0), awaiting=False) == (ACCEPTED, "confirmation withdrawn")
+    assert c.step(0.6, None, awaiting=False) is False and "ground station" in str(c.withdrawn)
+    assert c.command(0.7, gcs(0.7, 0), awaiting=False)[0] == TEMPORARILY_REJECTED  # nothing to withdraw
+    assert c.command(0.8, gcs(0.8, 0), awaiting=True)[0] == ACCEPTED  # the candidate stays unconfirmed
+    assert c.step(0.9, None, awaiting=True) is False
+    for bad in (0.5, 2.0, float("nan")):
+        assert c.command(1.0, gcs(1.0, bad), awaiting=True)[0] == DENIED
+    assert c.step(1.1, None, awaiting=True) is False
+
+
+def test_gcs_confirmation_lapses_when_that_ground_station_goes_silent() -> None:
+    c = OperatorConfirm(P)
+    c.command(0.0, gcs(0.0, 1), awaiting=True)
+    c.heard(1.5, 200, 190)  # another system's heartbeat keeps nothing alive
+    assert c.step(1.9, None, False) is True  # 1.9 s since the command (gcs_max_age 2.0)
+    assert c.step(2.1, None, False) is False and "not heard for 2.1 s" in str(c.withdrawn)
+    c = OperatorConfirm(P)
+    c.command(0.0, gcs(0.0, 1), awaiting=True)
+    for k in range(1, 10):  # its 1 Hz heartbeat
+        c.heard(float(k), 255, 190)
+        assert c.step(k + 0.9, None, False) is True
+    assert c.step(11.1, None, False) is False
+
+
+def test_rc_and_gcs_either_confirms_either_withdraws() -> None:
+    # GCS confirms with the switch off: the switch staying off withdraws nothing; turning it on/off does
+    c = OperatorConfirm(P)
+    c.step(0.0, rc(0.0, 1000), True)
+    c.command(0.1, gcs(0.1, 1), awaiting=True)
+    assert c.step(0.2, rc(0.2, 1000), False) is True
+    assert c.step(0.3, rc(0.3, 2000), False) is True and c.by == "gcs"
+    assert c.step(0.4, rc(0.4, 1000), False) is False and "RC switch" in str(c.withdrawn)
+    # the switch confirms, the GCS withdraws; the switch left ON then confirms nothing until cycled
+    c = OperatorConfirm(P)
+    c.step(0.0, rc(0.0, 1000), True)
+    assert c.step(0.1, rc(0.1, 2000), True) is True and c.by == "rc"
+    assert c.command(0.2, gcs(0.2, 0), awaiting=False)[0] == ACCEPTED
+    assert c.step(0.3, rc(0.3, 2000), True) is False
+    c.step(0.4, rc(0.4, 1000), True)
+    assert c.step(0.5, rc(0.5, 2000), True) is True
+    # an RC confirmation does not lapse with GCS silence (only with a stale RC reading)
+    assert c.step(9.0, rc(9.0, 2000), False) is True

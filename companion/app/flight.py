@@ -27,6 +27,7 @@ import numpy as np
 from companion.app import liveview, preflight
 from companion.app.camera import CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
+from companion.app.gcsconfirm import GcsConfirm
 from companion.app.liveview import ViewInfo
 from companion.app.logrows import log_detection, log_telemetry
 from companion.app.monitors import Monitors
@@ -322,12 +323,20 @@ class FlightApp(Monitors, SafeEnds):
         self.core = FlightCore.from_config(self.cfg, controller=self.ctrl)  # with the autopilot's hover thrust
         self._confirm = (OperatorConfirm(ConfirmParams.from_config(self.cfg))
                          if engage_mode(self.cfg) == "confirm" else None)
+        gcs = None
+        if self._confirm is not None and self.cfg.app.confirm.command:  # the ground station's confirm/withdraw
+            gcs = GcsConfirm(self.link, self._confirm, lambda: self.core is not None and self.core.engagement.awaiting,
+                             self.log.event, self.clock, self.cfg.app.confirm.command)
+            if not await gcs.start():
+                gcs = None
         self._live = liveview.from_config(self.cfg)  # app.live_view: the annotated stream (own threads)
         if self._live is not None:
             self.log.event(f"live view at {self._live.url}")
         try:
             await self._frame_loop(self.core)
         finally:
+            if gcs is not None:
+                await gcs.close()
             if self._live is not None:
                 self._live.close()
             await self._cancel_offboard_start()
@@ -347,9 +356,12 @@ class FlightApp(Monitors, SafeEnds):
             inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
             if inp is None:
                 raise _Tripped(Abort(Reason.TELEMETRY_INVALID, "no attitude from the autopilot for a frame"))
-            if self._confirm is not None:  # app.engage confirm: the operator's RC switch (companion/confirm.py)
+            if self._confirm is not None:  # app.engage confirm: RC switch or GCS command (companion/confirm.py)
                 inp = replace(inp, confirm=self._confirm.step(self.clock(), getattr(self.link, "rc", None),
                                                               core.engagement.awaiting))
+                if self._confirm.withdrawn is not None:
+                    self.log.event(f"confirmation withdrawn: {self._confirm.withdrawn}", "warn")
+                    self._confirm.withdrawn = None
             step = core.step(inp)
             d = step.decision
             if d.control is not None:

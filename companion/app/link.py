@@ -32,6 +32,7 @@ Public API (names are stable; the state machine and its tests rely on them)::
     link.status_text -> str | None (last STATUSTEXT), link.hover_thrust_source ("autopilot"|"config")
     link.events -> list[(t_monotonic, kind, detail)]; on_event(kind, detail) is called for each
     link.px4_events -> decoded PX4 events (companion/app/px4events.py); link.mode_reports -> heartbeats seen
+    link.own_ids -> (system id, component id) of the companion itself; link.mavsdk -> the mavsdk instance
 
 Exceptions (companion/app/linkerrors.py): every one derives ``LinkError`` and carries a one-line message
 saying what failed and where: ConnectFailed, NotHealthy, ArmDenied, TakeoffFailed, OffboardDenied,
@@ -117,6 +118,7 @@ class VehicleLink(TelemetryStreams, OffboardStreaming):
         self._telemetry: Any = None
         self._param: Any = None
         self._direct: Any = None
+        self.own_ids: tuple[int, int] | None = None  # the companion's (system id, component id), once connected
         self._tasks: list[asyncio.Task] = []
         self._inflight: set[asyncio.Future] = set()
         self._closed = False
@@ -285,6 +287,11 @@ class VehicleLink(TelemetryStreams, OffboardStreaming):
                                f"vehicle did not enter {mode}")
 
     @property
+    def mavsdk(self) -> Any:
+        """The mavsdk instance (None before connect): for the ground station's command (companion/app/gcsconfirm.py)."""
+        return self._mavsdk
+
+    @property
     def mode_reports(self) -> int:
         """Heartbeats (mode reports) received so far."""
         return self._mode_reports
@@ -315,7 +322,9 @@ class VehicleLink(TelemetryStreams, OffboardStreaming):
             self._event_decoder = EventDecoder.load(self.cfg.events_metadata or None)
         except (OSError, ValueError) as e:  # events are then logged by id only
             self._emit("events_metadata_unreadable", path=self.cfg.events_metadata, error=str(e))
-        self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
+        mcfg = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+        self.own_ids = (int(mcfg.system_id), int(mcfg.component_id))  # ours on MAVLink: a GCS addresses these
+        self._mavsdk = Mavsdk(mcfg)
         try:
             await self._call(f"open {url}", lambda: self._mavsdk.add_any_connection(url), timeout)
         except MavsdkConnectionError as e:

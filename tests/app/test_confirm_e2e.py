@@ -60,3 +60,75 @@ def test_engages_only_when_confirmed_and_withdrawal_holds(sim, tmp_path):
     pev = [e for _, e in sim.events]
     i_off = next(i for i, e in enumerate(pev) if e.startswith("mode:OFFBOARD:command"))
     assert any(e.startswith("mode:HOLD:command") for e in pev[i_off:]), pev
+
+
+USER_1 = 31010  # MAV_CMD_USER_1: app.confirm.command's default
+ACCEPTED, TEMPORARILY_REJECTED = 0, 1
+
+
+async def _until(pred, what: str, timeout: float = 10.0) -> None:
+    """Bounded wait for a condition of the flight (generous: a loaded CI machine)."""
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    while not pred():
+        assert loop.time() - t0 < timeout, f"timed out waiting for {what}"
+        await asyncio.sleep(0.02)
+
+
+def test_ground_station_confirms_and_withdraws(sim, tmp_path):
+    """No RC at all: the ground station's COMMAND_LONG (forwarded by PX4 to the companion's ids) confirms the
+    candidate, each command is acknowledged, and its withdraw ends the engagement in Hold."""
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.engage=confirm")
+    sim.set_gcs(True)
+    marks: dict[str, object] = {}
+
+    async def operator(app):
+        await _until(lambda: app.core is not None, "the flight loop")
+        await _until(lambda: app.core.engagement.awaiting, "a candidate awaiting confirmation", 30.0)
+        await asyncio.sleep(1.0)  # shown, nobody confirms: no engagement
+        marks["phase_unconfirmed"] = app.core.phase.value
+        marks["acks_before"] = list(sim.gcs_acks)
+        sim.gcs_command(USER_1, 1.0)
+        await _until(lambda: app.core.phase.value == "ENGAGE", "ENGAGE after the ground station's confirm")
+        await _until(lambda: len(sim.gcs_acks) >= 1, "the confirm's COMMAND_ACK")
+        await asyncio.sleep(0.5)
+        sim.gcs_command(USER_1, 0.0)
+        await _until(lambda: len(sim.gcs_acks) >= 2, "the withdraw's COMMAND_ACK")
+
+    reason, folder, summary = run_flight(cfg, operator)
+    assert marks["phase_unconfirmed"] == "ACQUIRE" and marks["acks_before"] == []
+    assert sim.gcs_acks[:2] == [(USER_1, ACCEPTED), (USER_1, ACCEPTED)], sim.gcs_acks
+    assert reason is Reason.NOT_CONFIRMED, summary
+    f = read_flight(folder)
+    path = f.state_path()
+    assert "ENGAGE" in path and path[-1] == "SAFE_HOLD", path
+    ev = [str(e) for e in f["events"]["text"]]
+    assert any("ground-station confirm from 255/190: ACCEPTED" in e for e in ev), ev
+    assert any("ground-station withdraw from 255/190: ACCEPTED" in e for e in ev), ev
+    assert any("withdrawn from the ground station" in e for e in ev), ev
+    assert any("confirmed by the operator" in str(r["reason"]) for r in f.states if r["to_state"] == "ENGAGE")
+    pev = [e for _, e in sim.events]
+    i_off = next(i for i, e in enumerate(pev) if e.startswith("mode:OFFBOARD:command"))
+    i_cmd = next(i for i, e in enumerate(pev) if e == f"gcs_command:{USER_1}:1")
+    assert i_cmd < i_off, "offboard was commanded before the ground station confirmed"
+    assert any(e.startswith("mode:HOLD:command") for e in pev[i_off:]), pev
+
+
+def test_ground_station_confirm_lapses_when_it_goes_silent(sim, tmp_path):
+    """A GCS confirmation lasts while that ground station is heard: its HEARTBEATs stop -> withdrawn, Hold."""
+    cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.engage=confirm", "app.confirm.gcs_max_age=1.0")
+    sim.set_gcs(True)
+
+    async def operator(app):
+        await _until(lambda: app.core is not None, "the flight loop")
+        await _until(lambda: app.core.engagement.awaiting, "a candidate awaiting confirmation", 30.0)
+        sim.gcs_command(USER_1, 1.0)
+        await _until(lambda: app.core.phase.value == "ENGAGE", "ENGAGE after the ground station's confirm")
+        sim.set_gcs(False)  # the ground station drops out while the vehicle engages
+
+    reason, folder, summary = run_flight(cfg, operator)
+    assert reason is Reason.NOT_CONFIRMED, summary
+    f = read_flight(folder)
+    assert f.state_path()[-1] == "SAFE_HOLD", f.state_path()
+    ev = [str(e) for e in f["events"]["text"]]
+    assert any("confirmation withdrawn: ground station (255, 190) not heard" in e for e in ev), ev

@@ -237,6 +237,22 @@ class SimPX4:
         with self._model.lock:
             self._wire.set_rc(channels_us)
 
+    def set_gcs(self, on: bool) -> None:
+        """A ground station on PX4's GCS link: on, its HEARTBEAT reaches the app at 1 Hz (PX4 forwards it)."""
+        with self._model.lock:
+            self._wire.set_gcs(on)
+
+    def gcs_command(self, command: int, param1: float, target: tuple[int, int] = (1, 195)) -> None:
+        """The ground station's COMMAND_LONG to ``target`` (default: mavsdk's companion ids), forwarded by PX4."""
+        with self._model.lock:
+            self._wire.gcs_command(command, param1, target)
+
+    @property
+    def gcs_acks(self) -> list[tuple[int, int]]:
+        """(command, MAV_RESULT) of the COMMAND_ACKs sent to the ground station."""
+        with self._model.lock:
+            return list(self._wire.gcs_acks)
+
     def force_disarm(self) -> None:
         """The kill switch (or a forced disarm from a ground station): motors off wherever the vehicle is."""
         with self._model.lock:

@@ -68,6 +68,7 @@ class MavlinkWire:
     """MAVLink 2 over UDP for a ``Px4Model``: one socket on 127.0.0.1, the peers that spoke to it, a fixed remote."""
 
     SYSID, COMPID = 1, 1
+    GCS_SYSID, GCS_COMPID = 255, 190  # QGroundControl's ids
 
     def __init__(self, model: Px4Model, *, remote_port: int | None, heartbeat_hz: float, telemetry_hz: float) -> None:
         self.model = model
@@ -104,6 +105,12 @@ class MavlinkWire:
         self._event_seq = 0
         self._events_meta: Any = None
         self._rc: list[int] | None = None  # RC channels (test switch set_rc); None: no RC, no RC_CHANNELS
+        # A ground station on PX4's GCS link, as PX4 forwards it to this (onboard) link: its HEARTBEAT at 1 Hz
+        # while connected (set_gcs), its commands (gcs_command); the acks addressed to it are recorded.
+        self._gcs_mav = mavlink.MAVLink(None, srcSystem=self.GCS_SYSID, srcComponent=self.GCS_COMPID)
+        self._gcs_on = False
+        self._gcs_next_hb = 0.0
+        self.gcs_acks: list[tuple[int, int]] = []  # (command, result) of COMMAND_ACKs to the ground station
 
     # ---------------------------------------------------------------------------------- socket
     def open(self, port: int) -> None:
@@ -142,6 +149,16 @@ class MavlinkWire:
     def set_rc(self, channels_us: list[int] | None) -> None:
         """An RC transmitter's channels (PWM us, channel 1 first, up to 18), sent as RC_CHANNELS; None: no RC."""
         self._rc = None if channels_us is None else [int(c) for c in channels_us][:18]
+
+    def set_gcs(self, on: bool) -> None:
+        """On: a ground station is connected (its HEARTBEAT forwarded at 1 Hz); off: it went silent."""
+        self._gcs_on = on
+
+    def gcs_command(self, command: int, param1: float, target: tuple[int, int]) -> None:
+        """The ground station's COMMAND_LONG to ``target`` (system, component), forwarded as PX4 does."""
+        msg = self._gcs_mav.command_long_encode(target[0], target[1], command, 0, param1, 0, 0, 0, 0, 0, 0)
+        self.model.event(f"gcs_command:{command}:{param1:g}")
+        self._send_raw(msg.pack(self._gcs_mav))
 
     # --------------------------------------------------------------------------- MAVLink input
     def receive_all(self, sock: socket.socket) -> None:
@@ -183,6 +200,10 @@ class MavlinkWire:
             if m.target_system in (0, self.SYSID):
                 for i in range(len(self.model.params)):
                     self._param_read("", i)
+        elif mid == mavlink.MAVLINK_MSG_ID_COMMAND_ACK and (m.target_system, m.target_component) == (
+                self.GCS_SYSID, self.GCS_COMPID):
+            self.gcs_acks.append((int(m.command), int(m.result)))  # forwarded to the GCS link by PX4
+            self.model.event(f"gcs_ack:{m.command}:{m.result}")
         elif mid == mavlink.MAVLINK_MSG_ID_PARAM_SET and m.target_system in (0, self.SYSID):
             self._param_set(m.param_id, m.param_value, m.param_type)
 
@@ -399,6 +420,10 @@ class MavlinkWire:
                 _SENSORS_ALL, _SENSORS_ALL, health, 200, 16200, 1000, 90, 0, 0, 0, 0, 0, 0, 0, 0, 0))
         if mavlink.MAVLINK_MSG_ID_HOME_POSITION in due:
             self._send_home()
+        if self._gcs_on and self.model.t >= self._gcs_next_hb:
+            self._gcs_next_hb = self.model.t + 1.0
+            hb = self._gcs_mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            self._send_raw(hb.pack(self._gcs_mav))
         if mavlink.MAVLINK_MSG_ID_RC_CHANNELS in due and self._rc is not None:
             ch = self._rc + [65535] * (18 - len(self._rc))  # UINT16_MAX: channel not in use
             self._send(self._mav.rc_channels_encode(ms, len(self._rc), *ch, 255))
