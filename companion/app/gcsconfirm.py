@@ -64,13 +64,16 @@ class GcsConfirm:
         mav, own = getattr(self.link, "mavsdk", None), getattr(self.link, "own_ids", None)
         if mav is None or own is None:
             return False
-        from mavsdk.asyncio.plugins.mavlink_direct_server import MavlinkDirectServerAsync
+        try:
+            from mavsdk.asyncio.plugins.mavlink_direct_server import MavlinkDirectServerAsync
 
-        server = await mav.server_component()
-        if server is None:
-            self.log("ground-station confirm: mavsdk has no server component; RC switch only", "warn")
+            server = await mav.server_component()
+            if server is None:
+                raise RuntimeError("mavsdk has no server component")
+            self._plugin = MavlinkDirectServerAsync(server)
+        except Exception as e:  # no GCS command: the switch still confirms; nothing confirmed -> acquire_timeout
+            self.log(f"ground-station confirm unavailable ({type(e).__name__}: {e}); RC switch only", "warn")
             return False
-        self._plugin = MavlinkDirectServerAsync(server)
         for name in ("COMMAND_LONG", "COMMAND_INT", "HEARTBEAT"):
             self._tasks.append(asyncio.create_task(self._follow(name), name=f"gcsconfirm:{name}"))
         self.log(f"ground-station confirm: command {self.command_id} to {own[0]}/{own[1]} "
@@ -83,6 +86,10 @@ class GcsConfirm:
         if self._tasks:
             await asyncio.wait(self._tasks, timeout=2.0)
         self._tasks = []
+        if self._plugin is not None:  # before the link destroys mavsdk, not whenever Python collects it
+            with contextlib.suppress(Exception):
+                self._plugin.destroy()
+            self._plugin = None
 
     async def _follow(self, name: str) -> None:
         try:
