@@ -132,3 +132,24 @@ def test_ground_station_confirm_lapses_when_it_goes_silent(sim, tmp_path):
     assert f.state_path()[-1] == "SAFE_HOLD", f.state_path()
     ev = [str(e) for e in f["events"]["text"]]
     assert any("confirmation withdrawn: ground station (255, 190) not heard" in e for e in ev), ev
+
+
+def test_parse_command_takes_only_ours_addressed_to_us():
+    import json
+    from types import SimpleNamespace
+
+    from companion.app.gcsconfirm import ack_message, parse_command
+
+    def msg(command=USER_1, target=(1, 195), p1=1.0, sender=(255, 190)):
+        f = {"command": command, "param1": p1, "target_system": target[0], "target_component": target[1]}
+        return SimpleNamespace(system_id=sender[0], component_id=sender[1], fields_json=json.dumps(f))
+
+    cmd = parse_command(msg(), (1, 195), USER_1, 5.0)
+    assert (cmd.t, cmd.param1, cmd.sysid, cmd.compid) == (5.0, 1.0, 255, 190)
+    assert parse_command(msg(command=31011), (1, 195), USER_1, 5.0) is None  # another command
+    assert parse_command(msg(target=(1, 1)), (1, 195), USER_1, 5.0) is None  # PX4's, not ours
+    assert parse_command(msg(p1=None), (1, 195), USER_1, 5.0).param1 != 0.0  # NaN: refused later (DENIED)
+    bad = SimpleNamespace(system_id=255, component_id=190, fields_json="{")
+    assert parse_command(bad, (1, 195), USER_1, 5.0) is None
+    assert ack_message(cmd, USER_1, 1) == {"command": USER_1, "result": 1, "progress": 0, "result_param2": 0,
+                                           "target_system": 255, "target_component": 190}
