@@ -109,8 +109,13 @@ class OperatorConfirm:
         self.why = f"RC channel {self.p.channel} at {rc.channels_us[i]} us ({'on' if on else 'off'})"
         return on
 
-    def step(self, t: float, rc: RcReading | None, awaiting: bool) -> bool:
-        """Confirmed now? ``awaiting``: the engagement shows a candidate and waits for the operator."""
+    def step(self, t: float, rc: RcReading | None, awaiting: bool, acquiring: bool = False) -> bool:
+        """Confirmed now? ``awaiting``: the engagement shows a candidate and waits for the operator;
+        ``acquiring``: it is still in ACQUIRE (not yet flying at anything)."""
+        if self.confirmed and acquiring and not awaiting:
+            # The confirmation was for the candidate shown; lost before the engagement began, it must not carry
+            # over to whatever is tracked next (a switch left on is not a new confirmation: off and on again).
+            self._withdraw("the confirmed candidate was lost before the engagement began: confirm the next one")
         on = self.switch_on(t, rc)
         if not on and (self._prev_on or self.by == "rc"):
             # the switch went off (or its reading stale): withdraws whichever way the confirmation came; a switch

@@ -135,3 +135,32 @@ def test_rc_and_gcs_either_confirms_either_withdraws() -> None:
     assert c.step(0.5, rc(0.5, 2000), True) is True
     # an RC confirmation does not lapse with GCS silence (only with a stale RC reading)
     assert c.step(9.0, rc(9.0, 2000), False) is True
+
+
+def test_a_confirmation_does_not_outlive_the_candidate_it_was_given_for() -> None:
+    """Confirmed on the frame the candidate was lost: the next candidate must be confirmed again, not engaged."""
+    cfg = load_config()
+    n = cfg.app.acquire_frames
+    e = Engagement.from_config(cfg, PNController.from_config(cfg))
+    c = OperatorConfirm(P)
+    b = BoundingBox(320, 240, 40, 40)
+    t, k = 0.0, 0
+
+    def step(box: BoundingBox | None, switch: int):  # the flight loop's order: confirm, then the engagement
+        nonlocal t, k
+        conf = c.step(t, rc(t, switch), e.awaiting, acquiring=e.phase is Phase.ACQUIRE)
+        d = e.step(t, box, LEVEL, 10.0, confirm=conf)
+        t, k = t + 1 / 30, k + 1
+        return conf, d
+
+    for _ in range(n + 5):
+        step(b, 1000)
+    assert e.awaiting
+    conf, d = step(None, 2000)  # switched on while shown; the box is gone in that very frame
+    assert conf is True and d.phase is Phase.ACQUIRE and not e.awaiting
+    phases = [step(b, 2000)[1].phase for _ in range(n + 10)]  # a new candidate, the switch still on
+    assert Phase.ENGAGE not in phases and e.awaiting and c.confirmed is False
+    assert "lost before the engagement began" in (c.withdrawn or "")
+    step(b, 1000)
+    conf, d = step(b, 2000)  # turned on again while this candidate is shown
+    assert conf is True and d.phase is Phase.ENGAGE

@@ -357,8 +357,9 @@ class FlightApp(Monitors, SafeEnds):
             if inp is None:
                 raise _Tripped(Abort(Reason.TELEMETRY_INVALID, "no attitude from the autopilot for a frame"))
             if self._confirm is not None:  # app.engage confirm: RC switch or GCS command (companion/confirm.py)
-                inp = replace(inp, confirm=self._confirm.step(self.clock(), getattr(self.link, "rc", None),
-                                                              core.engagement.awaiting))
+                inp = replace(inp, confirm=self._confirm.step(
+                    self.clock(), getattr(self.link, "rc", None), core.engagement.awaiting,
+                    acquiring=core.engagement.phase is Phase.ACQUIRE))
                 if self._confirm.withdrawn is not None:
                     self.log.event(f"confirmation withdrawn: {self._confirm.withdrawn}", "warn")
                     self._confirm.withdrawn = None
