@@ -112,9 +112,8 @@ def run(mem: mmap.mmap, wake_fd: int, hub: Hub, max_fps: float, quality: int) ->
     last = -1e9
     while True:
         now = time.monotonic()
-        if hub.clients > 0 and mem[0] == IDLE:
-            if now - last >= period:
-                mem[0] = WANT
+        if hub.clients > 0 and mem[0] == IDLE and now - last >= period:
+            mem[0] = WANT  # encode only while someone watches, at most max_fps
         timeout = max(0.0, period - (now - last)) if hub.clients > 0 and mem[0] == IDLE else 0.5
         if not select.select([wake_fd], [], [], timeout)[0]:
             continue
