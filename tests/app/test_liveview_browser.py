@@ -67,7 +67,8 @@ def _mean(img: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
     return img[rows, cols].reshape(-1, 3).mean(axis=0)
 
 
-@pytest.mark.parametrize(("phase", "awaiting", "bgr"), [("ENGAGE", False, (0, 255, 0)), ("ACQUIRE", True, (0, 220, 255))])
+@pytest.mark.parametrize(("phase", "awaiting", "bgr"),
+                         [("ENGAGE", False, (0, 255, 0)), ("ACQUIRE", True, (0, 220, 255))])
 def test_headless_browser_shows_the_annotated_stream(tmp_path: Path, phase: str, awaiting: bool,
                                                      bgr: tuple[int, int, int]) -> None:
     exe = _browser()
