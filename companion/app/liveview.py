@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import mmap
 import os
+import shutil
 import socket
 import struct
 import subprocess
@@ -131,8 +132,10 @@ class LiveView:
             os.set_blocking(self._wake_w, False)
             fds = (sock.fileno(), mem_fd, wake_r)
             # Own session: a Ctrl-C at the terminal goes to the flight, which then closes the view in order.
+            # Niced from its first instruction (coreutils nice) where there is one: even its start-up yields.
+            nice = ["nice", "-n", str(self.nice)] if self.nice > 0 and shutil.which("nice") else []
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "companion.app.liveview_proc", *(str(f) for f in fds), str(size),
+                [*nice, sys.executable, "-m", "companion.app.liveview_proc", *(str(f) for f in fds), str(size),
                  str(self.max_fps), str(self.quality), str(self.nice)],
                 pass_fds=fds, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True)
             os.close(mem_fd)

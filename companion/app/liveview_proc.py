@@ -21,7 +21,8 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from companion.app.liveview import BOUNDARY, DATA, HEADER, IDLE, PAGE, READY, WANT, annotate, unpack_header
+# Only the standard library at the top: the process lowers its priority (main) before it imports anything heavy
+# (numpy with companion.app.liveview, cv2 when the first frame arrives), so even its start-up yields to the flight.
 
 
 class Hub:
@@ -56,6 +57,8 @@ class Hub:
 
 
 def make_server(sock: socket.socket, hub: Hub) -> ThreadingHTTPServer:
+    from companion.app.liveview import BOUNDARY, PAGE
+
     class Handler(BaseHTTPRequestHandler):
         def log_message(self, *args: Any) -> None:  # no stderr line per request
             pass
@@ -105,8 +108,9 @@ def make_server(sock: socket.socket, hub: Hub) -> ThreadingHTTPServer:
 
 def run(mem: mmap.mmap, wake_fd: int, hub: Hub, max_fps: float, quality: int) -> None:
     """Frames in, JPEGs out, until the flight closes its end of the wake pipe."""
-    import cv2
     import numpy as np
+
+    from companion.app.liveview import DATA, HEADER, IDLE, READY, WANT, annotate, unpack_header
 
     period = 1.0 / max_fps
     last = -1e9
@@ -126,6 +130,8 @@ def run(mem: mmap.mmap, wake_fd: int, hub: Hub, max_fps: float, quality: int) ->
         mem[0] = IDLE
         last = time.monotonic()
         if hub.clients > 0:
+            import cv2  # here, not at start: without a client the view never loads it
+
             ok, buf = cv2.imencode(".jpg", annotate(image, info), [cv2.IMWRITE_JPEG_QUALITY, quality])
             if ok:
                 hub.publish(buf.tobytes())
@@ -135,8 +141,8 @@ def main(argv: list[str]) -> int:
     sock_fd, mem_fd, wake_fd, size = (int(a) for a in argv[:4])
     max_fps, quality, nice = float(argv[4]), int(argv[5]), int(argv[6])
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the flight ends the view, not the terminal
-    with contextlib.suppress(OSError):
-        os.nice(nice)  # below the flight: drawing and encoding take only CPU the flight leaves
+    with contextlib.suppress(OSError):  # below the flight: drawing and encoding take only CPU the flight leaves
+        os.nice(max(0, nice - os.nice(0)))  # (already niced by the nice command where there is one)
     mem = mmap.mmap(mem_fd, size)
     os.close(mem_fd)
     hub = Hub()
