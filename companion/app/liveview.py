@@ -117,20 +117,22 @@ class LiveView:
     def start(self) -> LiveView:
         """Bind the port (OSError when taken) and start the view process."""
         sock = socket.create_server((self.address, self.port), backlog=16)
+        child_fds: list[int] = []  # the view's ends: closed here once it holds them (or on failure)
         try:
             self.sockname = sock.getsockname()
             self.port = self.sockname[1]
             size = DATA + self.capacity
             if hasattr(os, "memfd_create"):  # Linux: anonymous memory, freed when both processes let go
-                mem_fd = os.memfd_create("companion-liveview")
+                child_fds.append(os.memfd_create("companion-liveview"))
             else:
                 with tempfile.TemporaryFile() as f:
-                    mem_fd = os.dup(f.fileno())
-            os.ftruncate(mem_fd, size)
-            self._mem = mmap.mmap(mem_fd, size)
+                    child_fds.append(os.dup(f.fileno()))
+            os.ftruncate(child_fds[0], size)
+            self._mem = mmap.mmap(child_fds[0], size)
             wake_r, self._wake_w = os.pipe()
+            child_fds.append(wake_r)
             os.set_blocking(self._wake_w, False)
-            fds = (sock.fileno(), mem_fd, wake_r)
+            fds = (sock.fileno(), *child_fds)
             # Own session: a Ctrl-C at the terminal goes to the flight, which then closes the view in order.
             # Niced from its first instruction (coreutils nice) where there is one: even its start-up yields.
             nice = ["nice", "-n", str(self.nice)] if self.nice > 0 and shutil.which("nice") else []
@@ -138,13 +140,13 @@ class LiveView:
                 [*nice, sys.executable, "-m", "companion.app.liveview_proc", *(str(f) for f in fds), str(size),
                  str(self.max_fps), str(self.quality), str(self.nice)],
                 pass_fds=fds, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True)
-            os.close(mem_fd)
-            os.close(wake_r)
         except BaseException:
             self.close()
             raise
         finally:
             sock.close()  # the view process holds it now: if it dies, the port is free again
+            for fd in child_fds:
+                os.close(fd)
         return self
 
     def offer(self, image: np.ndarray | None, info: ViewInfo) -> None:
