@@ -9,6 +9,7 @@ and this test must run there; elsewhere it skips when no chromium is found.
 
 from __future__ import annotations
 
+import http.client
 import os
 import shutil
 import subprocess
@@ -57,6 +58,19 @@ def screenshot(exe: str, url: str, out: Path) -> np.ndarray:
     return img
 
 
+def _wait_encoding(port: int) -> None:
+    """Until /frame.jpg answers with a frame: the view is up and encoding before the browser asks (a loaded CI
+    machine may need more than the view's 3 s per request for its first frame)."""
+    for _ in range(20):
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+        conn.request("GET", "/frame.jpg")
+        status = conn.getresponse().status
+        conn.close()
+        if status == 200:
+            return
+    pytest.fail("the live view served no frame in 20 requests")
+
+
 def camera_frame() -> np.ndarray:
     frame = np.full((H, W, 3), 60, np.uint8)
     frame[PATCH] = (255, 0, 255)
@@ -75,6 +89,7 @@ def test_headless_browser_shows_the_annotated_stream(tmp_path: Path, phase: str,
     lv = LiveView("127.0.0.1", 0, max_fps=15).start()
     try:
         with Feeder(lv, camera_frame(), ViewInfo(BOX, phase, awaiting, "tracking")):
+            _wait_encoding(lv.port)
             img = screenshot(exe, lv.url, tmp_path / "shot.png")
     finally:
         lv.close()
