@@ -329,7 +329,7 @@ class FlightApp(Monitors, SafeEnds):
                              self.log.event, self.clock, self.cfg.app.confirm.command)
             if not await gcs.start():
                 gcs = None
-        self._live = liveview.from_config(self.cfg)  # app.live_view: the annotated stream (own threads)
+        self._live = liveview.from_config(self.cfg, self.log.event)  # app.live_view: annotated stream (own process)
         if self._live is not None:
             self.log.event(f"live view at {self._live.url}")
         try:
@@ -375,7 +375,7 @@ class FlightApp(Monitors, SafeEnds):
                 if reset is not None:
                     reset()  # the tracker must not hold on to (or coast) the gate we just passed
             self._note_hover(step)
-            if self._live is not None:  # O(1): a reference in a one-slot mailbox
+            if self._live is not None:  # never waits: a copy into shared memory only when the view wants one
                 self._live.offer(frame.image, ViewInfo(box, d.phase.value, core.engagement.awaiting, d.why))
             if await self._apply(frame, step, t_avail):
                 return

@@ -7,34 +7,48 @@
 What it shows: the tracked box (green while engaged, yellow for a candidate awaiting the operator's
 confirmation, grey otherwise), the engagement's phase, the track state and the last event.
 
-Why it cannot slow the flight: the frame loop only calls ``offer()``, which stores a reference to the frame and
-its annotation in a one-slot mailbox (a newer frame replaces an unread one: frames are dropped, never queued)
-and signals a condition; drawing, JPEG encoding (at most ``max_fps``) and every client's socket run in this
-module's own daemon threads. A slow or stalled client blocks only its own handler thread. Binds 127.0.0.1
-unless ``app.live_view.address`` says otherwise.
+Why its cost to the flight is bounded: drawing, JPEG encoding and every client run in a separate process
+(companion/app/liveview_proc.py) at a lower CPU priority (``os.nice``), so they never take the flight process's
+GIL. The two share one frame slot in shared memory with a one-byte state (IDLE -> WANT, written by the view when a
+client is connected and ``max_fps`` allows; WANT -> READY, written here after copying the frame in). The frame
+loop's ``offer()`` reads that byte and, only when the view wants a frame, copies it in (one memcpy) and writes
+one byte to a non-blocking pipe: it never waits; without a client it copies nothing. Frames arriving while the
+view is busy are dropped. The listening socket is bound here (a taken port is known at once) and handed over.
+Any failure of the view (port taken, the process dies) logs one line and the flight goes on without it.
 """
 
 from __future__ import annotations
 
 import contextlib
-import threading
-import time
+import mmap
+import os
+import shutil
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 import numpy as np
 
 BOUNDARY = "companionframe"
 PAGE = (b"<!doctype html><html><head><title>companion live view</title></head>"
-        b"<body style='margin:0;background:#111'><img src='/stream' style='width:100%'></body></html>")
+        b"<body style='margin:0;background:#111'><img src='/stream' style='display:block;width:100%'></body></html>")
+
+# The shared frame slot: byte 0 the state, then the header, then the pixels at DATA.
+IDLE, WANT, READY = 0, 1, 2
+HEADER = struct.Struct("<QIIIBB4d32s256s")  # seq, h, w, channels, has box, awaiting, x0 y0 x1 y1, phase, text
+DATA = 512
 
 
 @dataclass(frozen=True, slots=True)
 class ViewInfo:
     """What to draw on one frame."""
 
-    box: Any = None  # perception.types.BoundingBox or None
+    box: Any = None  # anything with .xyxy (perception.types.BoundingBox) or None
     phase: str = ""
     awaiting: bool = False  # a candidate waits for the operator's confirmation
     text: str = ""  # one more line (track state, the last event)
@@ -46,8 +60,8 @@ def annotate(image: np.ndarray, info: ViewInfo) -> np.ndarray:
     img = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     b = info.box
     if b is not None:
-        colour = (0, 220, 255) if info.awaiting else (0, 255, 0) if info.phase in ("ENGAGE", "PASS") else (180, 180,
-                                                                                                           180)
+        engaged = info.phase in ("ENGAGE", "PASS")
+        colour = (0, 220, 255) if info.awaiting else (0, 255, 0) if engaged else (180, 180, 180)
         x0, y0, x1, y1 = (round(v) for v in b.xyxy)
         cv2.rectangle(img, (x0, y0), (x1, y1), colour, 2)
         if info.awaiting:
@@ -59,130 +73,139 @@ def annotate(image: np.ndarray, info: ViewInfo) -> np.ndarray:
     return img
 
 
+def pack_header(seq: int, shape: tuple[int, ...], info: ViewInfo) -> bytes:
+    h, w = shape[:2]
+    c = shape[2] if len(shape) == 3 else 1
+    xyxy = tuple(float(v) for v in info.box.xyxy) if info.box is not None else (0.0, 0.0, 0.0, 0.0)
+    return HEADER.pack(seq, h, w, c, info.box is not None, bool(info.awaiting), *xyxy,
+                       info.phase.encode()[:32], info.text.encode()[:256])
+
+
+@dataclass(frozen=True, slots=True)
+class _Box:
+    xyxy: tuple[float, float, float, float]
+
+
+def unpack_header(raw: bytes) -> tuple[int, tuple[int, ...], ViewInfo]:
+    seq, h, w, c, has_box, awaiting, x0, y0, x1, y1, phase, text = HEADER.unpack(raw)
+    shape = (h, w) if c == 1 else (h, w, c)
+    box = _Box((x0, y0, x1, y1)) if has_box else None
+    dec = lambda b: b.rstrip(b"\0").decode(errors="replace")  # noqa: E731
+    return seq, shape, ViewInfo(box, dec(phase), bool(awaiting), dec(text))
+
+
 class LiveView:
     """``start()``, then ``offer(image, info)`` per frame (never blocks), ``close()`` at the end."""
 
-    def __init__(self, address: str = "127.0.0.1", port: int = 0, max_fps: float = 15.0, quality: int = 70) -> None:
+    def __init__(self, address: str = "127.0.0.1", port: int = 0, max_fps: float = 15.0, quality: int = 70,
+                 capacity: int = 3840 * 2160 * 3,  # bytes of the largest frame (4K BGR; pages used on touch)
+                 on_error: Callable[[str], None] | None = None, nice: int = 10) -> None:
         self.address, self.port, self.max_fps, self.quality = address, int(port), float(max_fps), int(quality)
-        self._cv = threading.Condition()
-        self._slot: tuple[np.ndarray, ViewInfo] | None = None  # the newest unread frame (one slot)
-        self._jpeg: bytes | None = None
-        self._seq = 0  # number of the newest JPEG
-        self._closed = False
-        self.offered = self.dropped = self.taken = self.encoded = 0  # offered == dropped + taken (+ 1 unread)
-        self._server: ThreadingHTTPServer | None = None
-        self._threads: list[threading.Thread] = []
+        self.capacity, self.nice = int(capacity), int(nice)
+        self._on_error = on_error or (lambda msg: print(msg, file=sys.stderr))
+        self.offered = self.sent = self.skipped = 0  # offered == sent + skipped (a frame the view did not want)
+        self.failed: str | None = None  # why the view stopped (the flight goes on)
+        self.proc: subprocess.Popen[bytes] | None = None
+        self._mem: mmap.mmap | None = None
+        self._wake_w: int | None = None
+        self.sockname: tuple[Any, ...] = ()
 
     @property
     def url(self) -> str:
         return f"http://{self.address}:{self.port}/"
 
     def start(self) -> LiveView:
-        view = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args: Any) -> None:  # no stderr line per request
-                pass
-
-            def do_GET(self) -> None:
-                path = self.path.split("?")[0]
-                if path == "/":
-                    self._send(200, "text/html", PAGE)
-                elif path == "/frame.jpg":
-                    jpg = view.wait_jpeg(-1, 2.0)[1]
-                    self._send(200, "image/jpeg", jpg) if jpg else self._send(503, "text/plain", b"no frame yet")
-                elif path == "/stream":
-                    self._stream()
-                else:
-                    self._send(404, "text/plain", b"not found")
-
-            def _send(self, code: int, ctype: str, body: bytes) -> None:
-                self.send_response(code)
-                self.send_header("Content-Type", ctype)
-                self.send_header("Content-Length", str(len(body)))
-                self.send_header("Cache-Control", "no-store")
-                self.end_headers()
-                self.wfile.write(body)
-
-            def _stream(self) -> None:
-                self.send_response(200)
-                self.send_header("Content-Type", f"multipart/x-mixed-replace; boundary={BOUNDARY}")
-                self.send_header("Cache-Control", "no-store")
-                self.end_headers()
-                seq = -1
-                with contextlib.suppress(OSError):  # the client went away
-                    while not view._closed:
-                        seq, jpg = view.wait_jpeg(seq, 1.0)
-                        if jpg is None:
-                            continue
-                        self.wfile.write(f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpg)}"
-                                         "\r\n\r\n".encode() + jpg + b"\r\n")
-                        self.wfile.flush()
-
-        self._server = ThreadingHTTPServer((self.address, self.port), Handler)
-        self._server.daemon_threads = True
-        self.port = self._server.server_address[1]
-        for name, target in (("liveview:http", self._server.serve_forever), ("liveview:encode", self._encode_loop)):
-            th = threading.Thread(target=target, name=name, daemon=True)
-            th.start()
-            self._threads.append(th)
+        """Bind the port (OSError when taken) and start the view process."""
+        sock = socket.create_server((self.address, self.port), backlog=16)
+        child_fds: list[int] = []  # the view's ends: closed here once it holds them (or on failure)
+        try:
+            self.sockname = sock.getsockname()
+            self.port = self.sockname[1]
+            size = DATA + self.capacity
+            if hasattr(os, "memfd_create"):  # Linux: anonymous memory, freed when both processes let go
+                child_fds.append(os.memfd_create("companion-liveview"))
+            else:
+                with tempfile.TemporaryFile() as f:
+                    child_fds.append(os.dup(f.fileno()))
+            os.ftruncate(child_fds[0], size)
+            self._mem = mmap.mmap(child_fds[0], size)
+            wake_r, self._wake_w = os.pipe()
+            child_fds.append(wake_r)
+            os.set_blocking(self._wake_w, False)
+            fds = (sock.fileno(), *child_fds)
+            # Own session: a Ctrl-C at the terminal goes to the flight, which then closes the view in order.
+            # Niced from its first instruction (coreutils nice) where there is one: even its start-up yields.
+            nice = ["nice", "-n", str(self.nice)] if self.nice > 0 and shutil.which("nice") else []
+            self.proc = subprocess.Popen(
+                [*nice, sys.executable, "-m", "companion.app.liveview_proc", *(str(f) for f in fds), str(size),
+                 str(self.max_fps), str(self.quality), str(self.nice)],
+                pass_fds=fds, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True)
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            sock.close()  # the view process holds it now: if it dies, the port is free again
+            for fd in child_fds:
+                os.close(fd)
         return self
 
     def offer(self, image: np.ndarray | None, info: ViewInfo) -> None:
-        """The frame loop's only call: O(1), no copy, no encoding; an unread older frame is dropped."""
-        if image is None or self._closed:
+        """The frame loop's only call: a byte read, and a copy only when the view wants a frame; never waits."""
+        mem = self._mem
+        if image is None or mem is None or self.failed is not None:
             return
-        with self._cv:
-            self.offered += 1
-            if self._slot is not None:
-                self.dropped += 1
-            self._slot = (image, info)
-            self._cv.notify_all()
+        self.offered += 1
+        if mem[0] != WANT:
+            self.skipped += 1
+            if self.proc is not None and self.proc.poll() is not None:  # waitpid(WNOHANG): no wait
+                self._fail(f"the process exited with code {self.proc.returncode}")
+            return
+        if image.dtype != np.uint8 or image.nbytes > self.capacity or image.ndim not in (2, 3):
+            self._fail(f"cannot show a {image.dtype} frame of shape {image.shape}")
+            return
+        mem[1:1 + HEADER.size] = pack_header(self.sent + 1, image.shape, info)
+        np.ndarray(image.shape, np.uint8, buffer=mem, offset=DATA)[...] = image
+        mem[0] = READY
+        self.sent += 1
+        try:
+            os.write(self._wake_w, b"\1")  # type: ignore[arg-type]
+        except BlockingIOError:
+            pass  # the pipe is full of wake-ups already: the view will see READY
+        except OSError as e:  # the view's end is gone
+            self._fail(str(e))
 
-    def wait_jpeg(self, after: int, timeout: float) -> tuple[int, bytes | None]:
-        """The newest JPEG newer than number ``after`` (waits up to ``timeout`` s): (its number, bytes or None)."""
-        with self._cv:
-            self._cv.wait_for(lambda: self._seq > after or self._closed, timeout)
-            return (self._seq, self._jpeg) if self._seq > after else (after, None)
-
-    def _encode_loop(self) -> None:
-        import cv2
-
-        period = 1.0 / self.max_fps
-        last = -1e9
-        while True:
-            with self._cv:
-                self._cv.wait_for(lambda: self._slot is not None or self._closed)
-                if self._closed:
-                    return
-                item, self._slot = self._slot, None
-                self.taken += 1
-            assert item is not None
-            ok, buf = cv2.imencode(".jpg", annotate(item[0], item[1]), [cv2.IMWRITE_JPEG_QUALITY, self.quality])
-            if ok:
-                with self._cv:
-                    self._jpeg, self._seq = buf.tobytes(), self._seq + 1
-                    self.encoded += 1
-                    self._cv.notify_all()
-            wait = period - (time.monotonic() - last)
-            last = time.monotonic()
-            if wait > 0:
-                time.sleep(wait)  # at most max_fps encodes: frames offered meanwhile replace each other
+    def _fail(self, why: str) -> None:
+        self.failed = why
+        self._on_error(f"live view stopped ({why}); flying on without it")
+        self.close()
 
     def close(self) -> None:
-        with self._cv:
-            self._closed = True
-            self._cv.notify_all()
-        if self._server is not None:
-            self._server.shutdown()
-            self._server.server_close()
-        for th in self._threads:
-            th.join(timeout=2.0)
+        """Stop the view at once (it holds nothing worth saving): no wait worth speaking of in the flight."""
+        if self._wake_w is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._wake_w)  # also its signal to exit, should the terminate below not arrive
+            self._wake_w = None
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=1.0)
+        if self._mem is not None:
+            self._mem.close()
+            self._mem = None
 
 
-def from_config(cfg: Any) -> LiveView | None:
-    """The live view of ``app.live_view``, started; None when it is off."""
+def from_config(cfg: Any, on_error: Callable[[str], None] | None = None) -> LiveView | None:
+    """The live view of ``app.live_view``, started; None when it is off or cannot start (``on_error`` says why,
+    in one line: the flight never depends on it)."""
     lv = cfg.app.live_view
     if not lv.enabled:
         return None
-    return LiveView(lv.address, lv.port, lv.max_fps, lv.quality).start()
+    view = LiveView(lv.address, lv.port, lv.max_fps, lv.quality, on_error=on_error)
+    try:
+        return view.start()
+    except OSError as e:
+        view._on_error(f"live view off: cannot serve on {lv.address}:{lv.port} ({e}); flying on without it")
+        return None
