@@ -41,6 +41,9 @@ from companion.attitude import AttitudeTrack
 from companion.engagetally import EngagementTally, total
 from companion.flightlog import Flight, Table, read_flight
 from companion.frames import F_FRD_FLU, R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
+from companion.sim.camera import true_camera_config
+from perception.los import CameraModel
+from perception.render import Gate, PinholeCamera, gate_box
 from perception.types import BoundingBox
 
 MARGIN_PX = 24.0  # px (~3 deg): docs/verification-px4.md (the least margin that clears x500's good runs, doubled)
@@ -67,10 +70,6 @@ def truth_box(cfg: Any, p_ned: np.ndarray, q_wxyz: np.ndarray, centre_ned: np.nd
               radius: float, t: float = 0.0) -> BoundingBox | None:
     """The gate's box as the synthetic camera draws it (companion/app/synthcam.py ``_render``): NED pose and
     gate -> the scene's ENU, the camera as it truly sits (``sim.camera.mount_error``), perception's ``gate_box``."""
-    from companion.sim.camera import true_camera_config
-    from perception.los import CameraModel
-    from perception.render import Gate, PinholeCamera, gate_box
-
     cam_cfg = true_camera_config(cfg)
     model = CameraModel.from_config(cam_cfg)
     R_enu_cam = R_enu_flu_from_ned_frd(R_from_quat_wxyz(q_wxyz)) @ F_FRD_FLU @ model.R_body_cam
@@ -166,7 +165,6 @@ def apply_lock(rows: list[FrameRow], cfg: Any) -> int:
     companion/engagement.py runs it, on the box it sees: completed when cut by the border). Returns the rejections."""
     from companion.engagement import EngagementParams, complete_clipped_box
     from companion.targetlock import LockParams, TargetLock
-    from perception.los import CameraModel
 
     p = EngagementParams.from_config(cfg)
     lock = None
