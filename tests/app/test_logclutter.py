@@ -135,3 +135,45 @@ def test_a_wrong_projection_fails_both_checks(flight: Path, tmp_path: Path, monk
         # image about its centre: here, with the gate near the centre, its spot is too near the gate for clutter.)
         with pytest.raises(AssertionError):
             _check_moved(flight, tmp_path / "moved", shifts)
+
+
+def test_truth_box_is_the_synthetic_cameras_own() -> None:
+    """The box recomputed from a logged pose and gate is the one the synthetic camera drew (Frame.truth_box), with a
+    mount error and a pose that is neither level nor facing north."""
+    from scipy.spatial.transform import Rotation
+
+    from companion.app.synthcam import SyntheticCamera, VehiclePose
+    from companion.frames import R_from_euler_ned_deg, enu_to_ned
+
+    cfg = load_config([], ["app.camera=synthetic", "app.synthetic.render=image", "sim.camera.mount_error.pitch=7",
+                           "sim.camera.mount_error.yaw=-4", "app.synthetic.lateral_offset=3"])
+    R = R_from_euler_ned_deg(6.0, -14.0, 37.0)
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    pose = VehiclePose(1.0, np.array([2.0, -1.0, -10.0]), np.array([w, x, y, z]))
+    cam = SyntheticCamera(cfg, lambda: pose)
+    frame = cam.capture(1.0, pose)
+    assert frame.truth_box is not None and cam.scene is not None
+    g = cam.scene.gates[0]
+    got = lc.truth_box(cfg, pose.p_ned, pose.q_wxyz, enu_to_ned(g.position(0.0)), enu_to_ned(g.normal),
+                       cam.scene.radius)
+    assert got is not None
+    assert np.allclose(got.xyxy, frame.truth_box.xyxy, atol=1e-6), (got, frame.truth_box)
+
+
+def test_truth_rows_keep_the_simulators_attitude(tmp_path: Path) -> None:
+    """truth.csv carries SIH's attitude and its own time (what the camera drew with) when the source has them."""
+    from types import SimpleNamespace
+
+    from companion.app.logrows import log_telemetry
+    from companion.flightlog import FlightLog
+
+    log = FlightLog(tmp_path / "f")
+    q = np.array([0.9, 0.1, -0.2, 0.3811])
+    sample = SimpleNamespace(position_ned=np.zeros(3), velocity_ned=np.zeros(3), q_wxyz=q, t_rx=log.t0 + 1.25)
+    truth = SimpleNamespace(latest=lambda: sample)
+    link = SimpleNamespace(attitude=None, imu=None, baro=None, flight_mode=None, armed=None, landed_state=None)
+    log_telemetry(log, link, truth)
+    log.close()
+    tr = read_flight(log.folder)["truth"]
+    assert lc.has_true_attitude(tr)
+    assert np.allclose([tr[k][0] for k in ("qw", "qx", "qy", "qz")], q) and np.isclose(tr["t_truth"][0], 1.25)
