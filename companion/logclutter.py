@@ -39,7 +39,7 @@ import numpy as np
 
 from companion.attitude import AttitudeTrack
 from companion.engagetally import EngagementTally, total
-from companion.flightlog import Flight, Table, read_flight
+from companion.flightlog import Flight, Table, flight_crossings, read_flight
 from companion.frames import F_FRD_FLU, R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
 from companion.sim.camera import true_camera_config
 from perception.los import CameraModel
@@ -231,14 +231,23 @@ def tally_rows(rows: list[FrameRow], margin: float = MARGIN_PX, min_spell: int =
     the engaged boxes' error against the truth (IoU, centre distance px) on the frames judged on the gate."""
     tally = EngagementTally(min_spell=min_spell)
     ious, dists = [], []
+    closes: list[tuple[float, bool]] = []  # (t, judged wrong) of each pass claim, as the tally judges it
+    last: tuple[BoundingBox, np.ndarray | None] | None = None
     for r in rows:
-        tally.add(r.phase, r.events, r.used, _xyxy(r.truth, margin) if r.judged else None)
+        gts = _xyxy(r.truth, margin) if r.judged else None
+        if r.phase == "ENGAGE" and r.used is not None:
+            last = (r.used, gts)
+        if any(e.endswith(" close") or e.endswith("intercept: pulled up") for e in r.events):
+            b, g = (r.used, gts) if r.used is not None else (last or (None, None))
+            closes.append((r.t, bool(EngagementTally._wrong(b, g))))
+        tally.add(r.phase, r.events, r.used, gts)
         if r.phase == "ENGAGE" and r.used is not None and r.truth is not None and r.judged:
             d = math.hypot(r.used.cx - r.truth.cx, r.used.cy - r.truth.cy)
             if not tally._wrong(r.used, _xyxy(r.truth, margin)):
                 ious.append(iou(r.used, r.truth))
                 dists.append(d)
     out = tally.finish()
+    out["closes"] = closes
     out["engaged_on_gate_iou"] = [round(x, 4) for x in ious]
     out["engaged_on_gate_centre_px"] = [round(x, 2) for x in dists]
     return out
@@ -273,6 +282,10 @@ def clutter_of(folder: str | Path, margin: float = MARGIN_PX) -> dict[str, Any]:
         d_att = "PX4 estimate (the truth source's attitude: the camera drew with it)"
     d = tally_rows(rows, margin, cfg.app.acquire_frames)
     d["lock_rejected"] = rejected
+    # A claim on clutter after the vehicle had already crossed the gate's plane (it flew through unaware, then
+    # took clutter for the gate) is another failure than one that steered it away from the gate.
+    t_cross = [c.t for c in flight_crossings(flight)]
+    d["passes_claimed_wrong_after_crossing"] = sum(w and any(tc < tq for tc in t_cross) for tq, w in d.pop("closes"))
     d["attitude"] = d_att
     tr = flight.summary.get("truth") if isinstance(flight.summary, dict) else None
     d["through"] = bool(tr.get("through")) if isinstance(tr, dict) else None
@@ -322,7 +335,9 @@ def run_line(d: dict[str, Any]) -> str:
     return (f"{d['folder']}: {through}, {d['outcome']}; engagements {d['engagements']}, begun on wrong "
             f"{d['begun_on_wrong']}, frames on wrong {d['engaged_frames_wrong']}/{d['engaged_frames']}, passes "
             f"claimed on wrong {d['passes_claimed_wrong']}/{d['passes_claimed']}, never engaged while gate in view "
-            f"{d['never_engaged_spells']}, lock rejected {d['lock_rejected']}")
+            f"{d['never_engaged_spells']}, lock rejected {d['lock_rejected']}"
+            + (f" (claimed on wrong after crossing the gate's plane: {d['passes_claimed_wrong_after_crossing']})"
+               if d["passes_claimed_wrong"] else ""))
 
 
 def register(lsub: Any) -> None:
