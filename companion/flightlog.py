@@ -59,7 +59,9 @@ TOPICS: dict[str, tuple[str, ...]] = {
         "acc_f", "acc_r", "acc_d", "gyro_f", "gyro_r", "gyro_d",  # IMU, body FRD (specific force m/s^2, rad/s)
     ),
     # Ground truth / EKF position & velocity: for scoring and plots only, never a controller input.
-    "truth": ("t", "n", "e", "d", "vn", "ve", "vd"),
+    # With the simulator's attitude (NED/FRD wxyz) at its own time t_truth where the source has one: the synthetic
+    # camera drew with it, and companion/logclutter.py recomputes the gate's true box from it.
+    "truth": ("t", "n", "e", "d", "vn", "ve", "vd", "t_truth", "qw", "qx", "qy", "qz"),
     "detections": ("t", "t_frame", "frame", "cx", "cy", "w", "h", "confidence", "valid"),
     "los": ("t", "t_frame", "los_n", "los_e", "los_d", "lambda_dot", "a_n", "demand_scale", "rejected"),
     "setpoints": (

@@ -279,6 +279,9 @@ def register_log_actions(lsub: Any) -> None:
                     help="none: empty cell where a topic has no sample (default); hold: repeat each topic's last "
                          "value (for tools that need every cell filled)")
     ep.set_defaults(func=_cmd_export)
+    from companion.logclutter import register as register_clutter
+
+    register_clutter(lsub)  # log clutter: gate or clutter, per engaged frame, from a synthetic-camera log's truth
 
 
 def _cmd_summary(args: argparse.Namespace) -> int:

@@ -32,7 +32,10 @@ def log_telemetry(log: FlightLog, link: Any, truth: TruthSource | None = None) -
     sample = None if truth is None else truth.latest()  # log only: scoring and plots, never the controller
     if sample is not None:
         pn, vn = sample.position_ned, sample.velocity_ned
-        log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2])
+        q = getattr(sample, "q_wxyz", None)  # SIH's true attitude (what the synthetic camera drew with)
+        att_cols = {} if q is None else {"t_truth": sample.t_rx - log.t0, "qw": q[0], "qx": q[1], "qy": q[2],
+                                         "qz": q[3]}
+        log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2], **att_cols)
     return sample
 
 

@@ -1,0 +1,214 @@
+"""``companion log clutter`` on a real flight log: the simulated PX4 + the synthetic camera's rendered frames
+through the shipped detector (the path of tests/app/test_e2e.py), with the camera truly mounted 12 deg off its
+configured pitch (``sim.camera.mount_error``) so that a projection through the configured mount is ~70 px off.
+
+* the log as flown reads as on the gate on every engaged frame;
+* the same log with every box moved where clutter would be reads as an engagement begun on a wrong object;
+* with a wrong projection (the mount error ignored: both fail; body FRD taken as FLU: the first fails).
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from flighthelpers import FAST_PX4, make_config, run_flight
+
+import companion.logclutter as lc
+from companion.config import load_config
+from companion.flightlog import read_flight
+from companion.sim.px4 import SimPX4
+
+MOUNT_PITCH_ERROR = 12.0  # deg: ~70 px where the gate is, more than a far gate's box (~40 px) plus the margin
+
+
+def _detector_missing() -> str | None:
+    from companion.app.assemble import detector_available
+
+    return detector_available(load_config())
+
+
+pytestmark = pytest.mark.skipif(_detector_missing() is not None, reason="the shipped gate detector is not available")
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    tmp = tmp_path_factory.mktemp("clutterlog")
+    px4 = SimPX4(load_config([], ["sim.seed=7"]), px4_params=FAST_PX4)
+    px4.start()
+    try:
+        # The tool is under test, not the flight: a rendered flight (real time, real detector) once engaged for only
+        # 4 frames in ~8 flights here (cause not looked into); such a flight is flown again (at most twice more).
+        for k in range(3):
+            cfg = make_config(tmp / f"try{k}", px4.url_for_mavsdk, "app.synthetic.render=image",
+                              "app.synthetic.motion=linear_slow", f"sim.camera.mount_error.pitch={MOUNT_PITCH_ERROR}")
+            _, folder, summary = run_flight(cfg)
+            engaged = int((read_flight(folder)["setpoints"]["state"] == "ENGAGE").sum())
+            if (summary.get("truth") or {}).get("through") == 1 and engaged >= 20:
+                break
+    finally:
+        px4.stop()
+    yield Path(folder)
+
+
+WRONG = {"mount_error_ignored": ("true_camera_config", lambda cfg: cfg.camera),  # the configured mount
+         "frd_as_flu": ("F_FRD_FLU", np.eye(3))}  # body FRD taken for FLU
+
+
+def _truth_centres(folder: Path) -> dict[float, tuple[float, float]]:
+    f = read_flight(folder)
+    return {r.t: (r.truth.cx, r.truth.cy) for r in lc.frames_of(f, lc.config_of(f)) if r.truth is not None}
+
+
+def _clutter_shifts(folder: Path, wrong: str, mp: pytest.MonkeyPatch) -> dict[float, tuple[float, float]]:
+    """Per frame, how far from the true gate box a wrong projection puts the gate: the clutter spot that such a
+    projection would call the gate (frames where it has none: the median shift)."""
+    right = _truth_centres(folder)
+    with mp.context() as m:
+        m.setattr(lc, *WRONG[wrong])
+        bad = _truth_centres(folder)
+    d = {t: (bad[t][0] - right[t][0], bad[t][1] - right[t][1]) for t in right if t in bad}
+    assert len(d) > 20
+    med = tuple(np.median(np.array(list(d.values())), axis=0))
+    t_all = read_flight(folder)["detections"]["t_frame"]
+    return {float(t): d.get(float(t), med) for t in t_all}  # type: ignore[misc]
+
+
+def _moved(folder: Path, dst: Path, shifts: dict[float, tuple[float, float]]) -> Path:
+    """A copy of the flight with every perceived box moved by its frame's shift (clutter that far from the gate)."""
+    shutil.copytree(folder, dst)
+    p = dst / "detections.csv"
+    with p.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        if r["valid"] == "1":
+            dx, dy = shifts[float(r["t_frame"])]
+            r["cx"], r["cy"] = str(float(r["cx"]) + dx), str(float(r["cy"]) + dy)
+    with p.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return dst
+
+
+def _check_on_gate(folder: Path) -> dict:
+    per, _ = lc.report([str(folder)])
+    (d,) = per
+    assert d["attitude"].startswith("PX4 estimate (the truth source's"), d["attitude"]  # the sim's pose, exact
+    assert d["engagements"] == 1 and d["engaged_frames"] >= 20, d
+    assert d["begun_on_wrong"] == 0 and d["engaged_frames_wrong"] == 0 and d["passes_claimed_wrong"] == 0, d
+    return d
+
+
+def _check_moved(folder: Path, dst: Path, shifts: dict[float, tuple[float, float]]) -> dict:
+    per, _ = lc.report([str(_moved(folder, dst, shifts))])
+    (d,) = per
+    assert d["engagements"] == 1 and d["begun_on_wrong"] == 1, d
+    # Most frames: near the gate its box (200+ px) holds a centre moved by ~70 px (measured 51 of 62).
+    assert d["engaged_frames_wrong"] >= 0.5 * d["engaged_frames"] > 0, d
+    return d
+
+
+def test_flown_log_reads_on_the_gate(flight: Path) -> None:
+    d = _check_on_gate(flight)
+    # The engaged box against the true one (docs/verification-px4.md quotes the distribution).
+    assert np.median(d["engaged_on_gate_iou"]) > 0.6, np.percentile(d["engaged_on_gate_iou"], [5, 50, 95])
+
+
+def test_boxes_moved_off_the_gate_read_as_a_wrong_engagement(flight: Path, tmp_path: Path,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """Clutter where a projection through the configured mount would see the gate (~70 px off the true box)."""
+    shifts = _clutter_shifts(flight, "mount_error_ignored", monkeypatch)
+    med = np.median(np.array(list(shifts.values())), axis=0)
+    assert abs(med[1]) > 50.0 and abs(med[0]) < 10.0, med  # a pitch error: a vertical shift, beyond box + margin
+    _check_moved(flight, tmp_path / "moved", shifts)
+
+
+@pytest.mark.parametrize("wrong", sorted(WRONG))
+def test_a_wrong_projection_fails_both_checks(flight: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                              wrong: str) -> None:
+    """The checks above must catch a projection bug: with it, the flown log has wrong frames."""
+    shifts = _clutter_shifts(flight, wrong, monkeypatch)
+    monkeypatch.setattr(lc, *WRONG[wrong])
+    with pytest.raises(AssertionError):
+        _check_on_gate(flight)
+    if wrong == "mount_error_ignored":
+        # Clutter where that projection sees the gate reads as on the gate. (Body FRD taken for FLU mirrors the
+        # image about its centre: here, with the gate near the centre, its spot is too near the gate for clutter.)
+        with pytest.raises(AssertionError):
+            _check_moved(flight, tmp_path / "moved", shifts)
+
+
+def test_truth_box_is_the_synthetic_cameras_own() -> None:
+    """The box recomputed from a logged pose and gate is the one the synthetic camera drew (Frame.truth_box), with a
+    mount error and a pose that is neither level nor facing north."""
+    from scipy.spatial.transform import Rotation
+
+    from companion.app.synthcam import SyntheticCamera, VehiclePose
+    from companion.frames import R_from_euler_ned_deg, enu_to_ned
+
+    cfg = load_config([], ["app.camera=synthetic", "app.synthetic.render=image", "sim.camera.mount_error.pitch=7",
+                           "sim.camera.mount_error.yaw=-4", "app.synthetic.lateral_offset=3"])
+    R = R_from_euler_ned_deg(6.0, -14.0, 37.0)
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    pose = VehiclePose(1.0, np.array([2.0, -1.0, -10.0]), np.array([w, x, y, z]))
+    cam = SyntheticCamera(cfg, lambda: pose)
+    frame = cam.capture(1.0, pose)
+    assert frame.truth_box is not None and cam.scene is not None
+    g = cam.scene.gates[0]
+    got = lc.truth_box(cfg, pose.p_ned, pose.q_wxyz, enu_to_ned(g.position(0.0)), enu_to_ned(g.normal),
+                       cam.scene.radius)
+    assert got is not None
+    assert np.allclose(got.xyxy, frame.truth_box.xyxy, atol=1e-6), (got, frame.truth_box)
+
+
+def test_truth_rows_keep_the_simulators_attitude(tmp_path: Path) -> None:
+    """truth.csv carries SIH's attitude and its own time (what the camera drew with) when the source has them."""
+    from types import SimpleNamespace
+
+    from companion.app.logrows import log_telemetry
+    from companion.flightlog import FlightLog
+
+    log = FlightLog(tmp_path / "f")
+    q = np.array([0.9, 0.1, -0.2, 0.3811])
+    sample = SimpleNamespace(position_ned=np.zeros(3), velocity_ned=np.zeros(3), q_wxyz=q, t_rx=log.t0 + 1.25)
+    truth = SimpleNamespace(latest=lambda: sample)
+    link = SimpleNamespace(attitude=None, imu=None, baro=None, flight_mode=None, armed=None, landed_state=None)
+    log_telemetry(log, link, truth)
+    log.close()
+    tr = read_flight(log.folder)["truth"]
+    assert lc.has_true_attitude(tr)
+    assert np.allclose([tr[k][0] for k in ("qw", "qx", "qy", "qz")], q) and np.isclose(tr["t_truth"][0], 1.25)
+
+
+def test_a_log_with_the_simulators_attitude_is_read_with_it(flight: Path, tmp_path: Path) -> None:
+    """truth.csv with t_truth and the attitude (SIH logs from now on): the true boxes come from that attitude. Here
+    it is the attitude the camera drew with (PX4's, on the simulated PX4), so the log still reads as on the gate;
+    the same columns with the attitude yawed 10 deg read as off it."""
+    from scipy.spatial.transform import Rotation
+
+    def with_truth_attitude(dst: Path, yaw_deg: float) -> Path:
+        shutil.copytree(flight, dst)
+        att = lc._attitude(read_flight(flight)["telemetry"])
+        p = dst / "truth.csv"
+        with p.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        for r in rows:
+            w, x, y, z = att.at(float(r["t"]))
+            q = (Rotation.from_euler("z", yaw_deg, degrees=True) * Rotation.from_quat([x, y, z, w])).as_quat()
+            r.update(t_truth=r["t"], qw=str(q[3]), qx=str(q[0]), qy=str(q[1]), qz=str(q[2]))
+        with p.open("w", newline="") as f:
+            wr = csv.DictWriter(f, fieldnames=[*rows[0]])
+            wr.writeheader()
+            wr.writerows(rows)
+        return dst
+
+    (d,), _ = lc.report([str(with_truth_attitude(tmp_path / "same", 0.0))])
+    assert d["attitude"] == "simulator truth"
+    assert d["engagements"] == 1 and d["engaged_frames"] >= 20 and d["engaged_frames_wrong"] == 0, d
+    (d,), _ = lc.report([str(with_truth_attitude(tmp_path / "yawed", 10.0))])
+    assert d["begun_on_wrong"] == 1, d
