@@ -570,6 +570,9 @@ def _crossings_of(gate: Table, truth: Table, g_ok: np.ndarray) -> list[Crossing]
     if len(gt) < 2:
         return []
     tt = truth["t"]
+    t_own = truth.data.get("t_truth")
+    if t_own is not None and t_own.dtype.kind == "f" and np.isfinite(t_own).all():
+        tt = t_own  # the sample's own time, as the app's judge takes it (older logs: the row's)
     sel = (tt >= gt[0]) & (tt <= gt[-1])
     tt = tt[sel]
     p = np.column_stack([truth[c][sel] for c in ("n", "e", "d")])

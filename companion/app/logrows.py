@@ -33,9 +33,11 @@ def log_telemetry(log: FlightLog, link: Any, truth: TruthSource | None = None) -
     if sample is not None:
         pn, vn = sample.position_ned, sample.velocity_ned
         q = getattr(sample, "q_wxyz", None)  # SIH's true attitude (what the synthetic camera drew with)
-        att_cols = {} if q is None else {"t_truth": sample.t_rx - log.t0, "qw": q[0], "qx": q[1], "qy": q[2],
-                                         "qz": q[3]}
-        log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2], **att_cols)
+        att_cols = {} if q is None else {"qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3]}
+        # t_truth: the sample's own arrival time (the row's t is when this loop wrote it, maybe a repeat): the
+        # app's judge and a re-score of the log pair the vehicle with the gate at that time, however loaded.
+        log.write("truth", n=pn[0], e=pn[1], d=pn[2], vn=vn[0], ve=vn[1], vd=vn[2], t_truth=sample.t_rx - log.t0,
+                  **att_cols)
     return sample
 
 

@@ -65,7 +65,7 @@ def test_log_summary_and_export_match_the_flight_log(sim, tmp_path):
     prev = None
     found = None
     for r in truth:
-        t = float(r["t"])
+        t = float(r["t_truth"])  # the sample's own time (the row's t is when the telemetry loop wrote it)
         if t < tg[0] or t > tg[-1]:
             continue
         c = np.array([np.interp(t, tg, g[k]) for k in ("gate_n", "gate_e", "gate_d")])
@@ -80,8 +80,9 @@ def test_log_summary_and_export_match_the_flight_log(sim, tmp_path):
         prev = (t, sd, d)
     assert found is not None
     # The log's re-score of its own topics is that computation; the summary shows the app's live judgement
-    # (summary.json "truth", the same record the flight's printed lines use), which took each truth sample at
-    # its arrival time rather than at its row's: within a telemetry period of the re-score.
+    # (summary.json "truth", the same record the flight's printed lines use): both take each truth sample at its
+    # arrival time (t_truth), so they differ only where the judge extrapolates the gate and the log interpolates
+    # it, however late the telemetry loop wrote the rows.
     (c,) = gate_crossings(read_flight(folder))
     assert c.t == pytest.approx(found[0], abs=1e-3) and c.d_center == pytest.approx(found[1], abs=0.02)
     (judged,) = written["truth"]["gates"]
