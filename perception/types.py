@@ -22,8 +22,8 @@ class BoundingBox:
 
     def is_valid(self, width: int, height: int) -> bool:
         """Finite, positive size, centre inside the image: anything else is garbage from a detector."""
-        vals = (self.cx, self.cy, self.w, self.h, self.confidence)
-        if not all(math.isfinite(v) for v in vals):
+        isf = math.isfinite  # no generator: this runs several times a frame (engagement, controller, lock)
+        if not (isf(self.cx) and isf(self.cy) and isf(self.w) and isf(self.h) and isf(self.confidence)):
             return False
         return self.w > 0 and self.h > 0 and 0.0 <= self.cx <= width and 0.0 <= self.cy <= height
 
