@@ -28,6 +28,7 @@ from companion.closing import ClosingParams, ClosingSpeedEstimator
 from companion.frames import P_NED_ENU, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import GuidanceParams, Setpoint
 from companion.ownmotion import OwnMotion
+from perception.fastinit import fast_init
 from perception.los import CameraModel, LosFilter, LosKalman, LosKalmanParams
 from perception.types import BoundingBox
 
@@ -37,6 +38,7 @@ if TYPE_CHECKING:
 Mode = Literal["pn", "coast", "hover"]
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ControlOutput:
     t: float
@@ -51,6 +53,7 @@ class ControlOutput:
     v_rel: float = math.nan  # closing speed the PN law used, m/s (v_rel_bar, or the estimate)
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ControllerParams:
     guidance: GuidanceParams

@@ -5,7 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from perception.fastinit import fast_init
 
+
+@fast_init
 @dataclass(frozen=True, slots=True)
 class BoundingBox:
     """An axis-aligned box in pixels (image x right, y down), centre + size, with its frame time."""
