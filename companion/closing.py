@@ -70,9 +70,10 @@ class ClosingSpeedEstimator:
         is capped where the loop would ring."""
         if self.x is None:
             return self.p.v_rel_bar
-        d = max(float(self.x[0]), 0.0)
-        v_rel = math.hypot(float(self.x[1]), d * lambda_dot)
-        v = self.p.margin * v_rel + math.sqrt(max(float(self.P[1, 1]), 0.0))
+        x0, x1 = self.x.tolist()  # the same floats as float() of each element, in one call (every frame)
+        d = max(x0, 0.0)
+        v_rel = math.hypot(x1, d * lambda_dot)
+        v = self.p.margin * v_rel + math.sqrt(max(self.P.item(1, 1), 0.0))
         if self.p.loop_lag > 0.0:
             v = min(v, d / (self.p.lag_margin * (self.p.loop_lag + max(latency, 0.0))))
         return min(self.p.v_rel_bar, max(self.p.v_min, v))

@@ -28,6 +28,7 @@ from companion.closing import ClosingParams, ClosingSpeedEstimator
 from companion.frames import P_NED_ENU, R_from_quat_wxyz, euler_ned_deg_from_R
 from companion.guidance import GuidanceParams, Setpoint
 from companion.ownmotion import OwnMotion
+from perception.fastinit import fast_init
 from perception.los import CameraModel, LosFilter, LosKalman, LosKalmanParams
 from perception.types import BoundingBox
 
@@ -37,6 +38,7 @@ if TYPE_CHECKING:
 Mode = Literal["pn", "coast", "hover"]
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ControlOutput:
     t: float
@@ -51,6 +53,7 @@ class ControlOutput:
     v_rel: float = math.nan  # closing speed the PN law used, m/s (v_rel_bar, or the estimate)
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ControllerParams:
     guidance: GuidanceParams
@@ -182,7 +185,7 @@ class PNController:
         self._t_prev: float | None = None
         self._t_last: float | None = None  # time of the last step, used or not
         self._jumps = 0
-        self._w: np.ndarray | None = None  # filtered LOS rate vector lambda_dot * n (ENU)
+        self._w: tuple[float, float, float] | None = None  # filtered LOS rate vector lambda_dot * n (ENU), floats
         self._lam = 0.0  # last LOS rate, rad/s
         self._latency = 0.0  # age of the last frame when it reached us, s
         self._t_now: float | None = None  # the caller's time now (frame arrival), when given
@@ -396,21 +399,20 @@ class PNController:
         gp = self.p.guidance
         v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
         a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, v_rel)
-        if self._drag is not None and self.p.drag_compensation > 0.0:
+        # The PN frame's y axis of the filtered LOS: only the drag terms below use it (computed once, when needed).
+        y_pn = _y_pn(l_f) if self._drag is not None else None
+        if y_pn is not None and self.p.drag_compensation > 0.0:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
             # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
             # accelerometer misses drag along the thrust axis, so the vertical normal part is not trusted.)
-            y_pn = _y_pn(l_f)
-            if y_pn is not None:
-                a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
+            a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
         sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
             a_net = sol.demand_scale * a_n
-            y_pn = _y_pn(l_f)
-            if self._drag is not None and y_pn is not None:
+            if y_pn is not None:
                 a_net = a_net + float(self._drag @ y_pn) * y_pn
             self._note_command(a_net)
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
@@ -424,15 +426,15 @@ class PNController:
         wx, wy, wz = w.tolist() if isinstance(w, np.ndarray) else w  # scalar math: this runs every frame
         if self.p.rate_cutoff_hz > 0.0:
             if self._w is None or not (0.0 < dt <= self.p.max_dt):
-                self._w = np.array([wx, wy, wz])
+                self._w = (wx, wy, wz)
             else:
                 beta = 1.0 - math.exp(-2.0 * math.pi * self._rate_cutoff() * dt)
-                ox, oy, oz = self._w.tolist()
+                ox, oy, oz = self._w
                 wx, wy, wz = ox + beta * (wx - ox), oy + beta * (wy - oy), oz + beta * (wz - oz)
                 lx, ly, lz = l_f.tolist()
                 d = wx * lx + wy * ly + wz * lz
                 wx, wy, wz = wx - d * lx, wy - d * ly, wz - d * lz
-                self._w = np.array([wx, wy, wz])
+                self._w = (wx, wy, wz)
         lam = math.sqrt(wx * wx + wy * wy + wz * wz)
         return lam, (np.array([wx / lam, wy / lam, wz / lam]) if lam > 0.0 else np.zeros(3))
 

@@ -25,12 +25,14 @@ import numpy as np
 from companion.engagement import Decision, Engagement, EngagementParams, LinkEvent, Phase, Steering
 from companion.frames import R_from_quat_wxyz
 from companion.hover import HoverEstimate, HoverThrustEstimator, thrust_specific_force, use_hover_thrust
+from perception.fastinit import fast_init
 from perception.types import BoundingBox
 
 if TYPE_CHECKING:
     from companion.config import Config
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ImuReading:
     """One accelerometer sample: its time (same clock as the frames) and the specific force, body FRD, m/s^2."""
@@ -39,6 +41,7 @@ class ImuReading:
     accel_frd: np.ndarray
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class FrameInput:
     """Everything the core may know of one camera frame."""
@@ -54,6 +57,7 @@ class FrameInput:
     confirm: bool | None = None  # the operator's confirmation (app.engage confirm, companion/confirm.py); None: auto
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class CoreStep:
     decision: Decision

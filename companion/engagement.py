@@ -46,6 +46,7 @@ from companion.pullup import PullUpParams, PullUpPlanner, arrest_loss
 from companion.reasons import Reason
 from companion.targetlock import LockParams, TargetLock
 from companion.verify import TargetVerifier, VerifyParams
+from perception.fastinit import fast_init
 from perception.los import CameraModel
 from perception.types import BoundingBox
 
@@ -86,6 +87,7 @@ class Steering(Protocol):
     def reset(self) -> None: ...
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class EngagementParams:
     acquire_frames: int
@@ -147,6 +149,7 @@ class GatePass:
                 "t_end": self.t_end, "evidence": self.evidence}
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Decision:
     t: float

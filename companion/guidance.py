@@ -62,6 +62,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.frames import euler_ned_deg_from_rows, quat_wxyz_from_R
+from perception.fastinit import fast_init
 
 G = 9.81
 DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 50 deg needs 1.56 g of its 2 g)
@@ -108,6 +109,7 @@ class LosRate:
     n: np.ndarray  # unit normal direction of the PN acceleration; zero when lambda_dot == 0
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ThrustAttitude:
     f_th: float  # mass-normalised thrust, m/s^2
@@ -567,6 +569,7 @@ def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidancePara
     return ThrustAttitude(f, phi, 0.0, R_W_PN @ _R_y_R_x(phi, 0.0), 0.0, True)
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Setpoint:
     """What goes to MAVSDK ``Offboard.set_attitude``: NED/FRD Euler (deg, absolute yaw) + thrust 0..1."""

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from perception.fastinit import fast_init
 from perception.los import CameraModel, los_world
 from perception.types import BoundingBox
 
@@ -45,6 +46,7 @@ class LockParams:
     los_floor: float = math.radians(8.0)  # rad: attitude error and timing (a 300 deg/s swing x 20 ms = 6 deg)
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class LockCheck:
     ok: bool

@@ -5,7 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from perception.fastinit import fast_init
 
+
+@fast_init
 @dataclass(frozen=True, slots=True)
 class BoundingBox:
     """An axis-aligned box in pixels (image x right, y down), centre + size, with its frame time."""
@@ -22,8 +25,8 @@ class BoundingBox:
 
     def is_valid(self, width: int, height: int) -> bool:
         """Finite, positive size, centre inside the image: anything else is garbage from a detector."""
-        vals = (self.cx, self.cy, self.w, self.h, self.confidence)
-        if not all(math.isfinite(v) for v in vals):
+        isf = math.isfinite  # no generator: this runs several times a frame (engagement, controller, lock)
+        if not (isf(self.cx) and isf(self.cy) and isf(self.w) and isf(self.h) and isf(self.confidence)):
             return False
         return self.w > 0 and self.h > 0 and 0.0 <= self.cx <= width and 0.0 <= self.cy <= height
 
