@@ -220,7 +220,8 @@ class AppConfig(Section):
     verify: VerifyConfig = VerifyConfig()
     engage: EngageMode | None = Field(
         None, description="auto: engage on a stable track; confirm: only while the operator confirms (RC switch or "
-        "ground-station command, app.confirm); unset: confirm for a camera device or stream, auto for synthetic frames or a video file")
+        "ground-station command, app.confirm); unset: confirm for a camera device or stream, auto for synthetic "
+        "frames or a video file")
     confirm: ConfirmConfig = ConfirmConfig()
     live_view: LiveViewConfig = LiveViewConfig()
     status_interval: Seconds = Field(0.5, gt=0.0, le=60.0, description="s between status lines")
