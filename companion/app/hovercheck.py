@@ -11,12 +11,12 @@ import math
 from typing import Any
 
 from companion.hover import HoverThrustEstimator, use_hover_thrust
-from companion.vehiclematch import HoverCheck, hover_after_takeoff, measured_hover
+from companion.vehiclematch import MIN_SAMPLES, WINDOW, HoverCheck, hover_after_takeoff, measured_hover
 
 
 class HoverAfterTakeoff:
     """``frame(core, acquiring, now)`` once per frame until it has reported: while the engagement acquires (PX4
-    holds) it reports as soon as PX4's hover is measured (the take-off's end counts too); the first frame after
+    holds) it reports as soon as PX4's hover is measured (from the end of the take-off climb); the first frame after
     ACQUIRE reports with what there was before it."""
 
     def __init__(self, app: Any, mpc_thr_hover: float | None) -> None:
@@ -32,7 +32,9 @@ class HoverAfterTakeoff:
         if acquiring:
             self.until = now
         # Take-off and hold, up to the last frame before our first setpoint (the mode PX4 reports lags 0.2-1 s).
-        measured, n = measured_hover(list(getattr(self.app.link, "thrust_targets", ())), until=self.until)
+        # In ACQUIRE: a full window (the newest second of PX4's hover); after it, whatever there was.
+        measured, n = measured_hover(list(getattr(self.app.link, "thrust_targets", ())), until=self.until,
+                                     need=WINDOW if acquiring else MIN_SAMPLES)
         if acquiring and measured is None:
             return  # not yet: PX4 still holds, more samples come
         self.done = True

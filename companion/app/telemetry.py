@@ -252,10 +252,8 @@ class TelemetryStreams:
             thrust = float(f["thrust"])
         except (ValueError, KeyError, TypeError, IndexError):
             return  # unreadable: one sample fewer
-        imu, att, baro = self._imu, self._attitude, self._baro
-        # The vertical specific force now (newest IMU, attitude): what that thrust achieved (vehiclematch.py).
-        a_up = None if imu is None or att is None else -float(att.R_ned_frd[2] @ imu.accel_frd)
-        self.thrust_targets.append(ThrustSample(time.monotonic(), thrust, q, self._flight_mode, self._landed, a_up,
+        baro = self._baro
+        self.thrust_targets.append(ThrustSample(time.monotonic(), thrust, q, self._flight_mode, self._landed,
                                                 None if baro is None else baro.altitude_m))
 
     def _on_attitude(self, q: list[Any], t_ms: int) -> None:
