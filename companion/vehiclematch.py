@@ -19,6 +19,7 @@ HOVER_LIMIT = 0.10  # relative mismatch worth a WARNING (and, with hover.start_f
 WINDOW = 10  # the newest PX4 thrust samples used (1 s at 10 Hz): the hover after the take-off's end
 MIN_SAMPLES = 5  # fewer usable samples: not measured
 MIN_ALT = 1.0  # m above the take-off point: below, the ground may still carry the vehicle
+SETTLE_S = 0.5  # s after PX4's hover began (landed state IN_AIR) before its thrust counts: the climb's end swings
 
 
 @dataclass(frozen=True)
@@ -57,11 +58,16 @@ def measured_hover(samples: Iterable[ThrustSample], until: float = math.inf,
     number used); (None, n) with fewer than ``need``.
 
     The raw command, not corrected by the IMU: on PX4 SITL one HIGHRES_IMU sample scatters +-15 % about g, the
-    command 1-2 % about the hover. The median of the newest second rides out the take-off's end (PX4 1.15 SIH,
-    1.5 kg: the command swings 0.35-0.44 for ~1.5 s around a 0.40 hover; the median of any 10 samples from
-    the end of the climb on was 0.39-0.41).
+    command 1-2 % about the hover. The first SETTLE_S of the hover are left out and the median of the newest
+    second rides out the rest of the take-off's end (PX4 1.15 SIH, 1.5 kg, true hover 0.400: the command dips
+    to 0.35 in the first 0.5 s of IN_AIR, then swings 0.38-0.44 for ~1 s; medians of 5-10 samples from 0.5 s on
+    were 0.39-0.41).
     """
-    vals = [v for s in samples if s.t <= until and hovering(s)
+    hover = [s for s in samples if hovering(s)]
+    if not hover:
+        return None, 0
+    start = hover[0].t + SETTLE_S
+    vals = [v for s in hover if start <= s.t <= until
             for v in (vertical_thrust(s.thrust, s.q_wxyz),) if math.isfinite(v) and 0.05 < v < 0.95][-WINDOW:]
     n = len(vals)
     if n < need:

@@ -20,6 +20,7 @@ from companion.sim.dynamics import QuadParams
 from companion.sim.px4 import SimPX4
 from companion.vehiclematch import (
     MIN_SAMPLES,
+    SETTLE_S,
     WINDOW,
     ThrustSample,
     hover_after_takeoff,
@@ -44,7 +45,8 @@ def test_vertical_thrust_and_median():
         base = {"mode": "HOLD", "landed": "IN_AIR", "alt": 5.0}
         return ThrustSample(t, thrust, _q_roll(0.0), **{**base, **kw})  # type: ignore[arg-type]
 
-    ok = [hold(1.0 + 0.1 * i, 0.40) for i in range(MIN_SAMPLES)]
+    # The first SETTLE_S of the hover (the climb's end) is left out.
+    ok = [hold(0.0, 0.30)] + [hold(SETTLE_S + 0.1 * i, 0.40) for i in range(MIN_SAMPLES)]
     assert measured_hover(ok) == (pytest.approx(0.40), MIN_SAMPLES)
     # Not PX4's hover: after ``until`` (our setpoints while the mode PX4 reports still lags), OFFBOARD, the climb
     # (TAKING_OFF), on or near the ground.
@@ -55,6 +57,7 @@ def test_vertical_thrust_and_median():
     assert measured_hover(ok, need=WINDOW) == (None, MIN_SAMPLES)
     # The newest WINDOW only: the take-off's end swings, the hover after it counts.
     swing = [hold(0.1 * i, 0.30) for i in range(20)] + [hold(2.0 + 0.1 * i, 0.41) for i in range(WINDOW)]
+    assert measured_hover(swing, until=1.95) == (pytest.approx(0.30), WINDOW)  # still the swing then
     assert measured_hover(swing, need=WINDOW) == (pytest.approx(0.41), WINDOW)
 
 
