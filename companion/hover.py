@@ -53,6 +53,10 @@ class HoverConfig(Section):
                                   "accelerometer's -z (drag biases the estimate high at speed)")
     max_tilt: Deg = Field(60.0, gt=0.0, le=80.0, description="drag_correction: samples tilted more than this are "
                           "not used (1 / cos(tilt) amplifies the attitude's error)")
+    start_from_px4: bool = Field(True, description="after take-off, when the thrust PX4 commands in its hover "
+                                 "differs from the hover thrust in use by more than 10 %, fly PX4's measured value "
+                                 "(the in-flight estimate starts from it); a matching vehicle flies as before "
+                                 "(companion/vehiclematch.py)")
 
 
 @dataclass

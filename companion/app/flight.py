@@ -28,6 +28,7 @@ from companion.app import liveview, preflight
 from companion.app.camera import CameraSource, Frame, Perception
 from companion.app.deadman import LoopDeadman
 from companion.app.gcsconfirm import GcsConfirm
+from companion.app.hovercheck import HoverAfterTakeoff
 from companion.app.liveview import ViewInfo
 from companion.app.logrows import log_detection, log_telemetry
 from companion.app.monitors import Monitors
@@ -130,6 +131,9 @@ class FlightApp(Monitors, SafeEnds):
         self._hover_logged: float | None = None
         self._failsafe_values: dict[str, float | None] = {}
         self._px4_failsafe: str | None = None  # PX4's offboard-loss failsafe took the vehicle (not a pilot): why
+        self._mpc_thr_hover: float | None = None  # PX4's MPC_THR_HOVER when read and plausible
+        self._hover_check: HoverAfterTakeoff | None = None  # PX4's hover measured after take-off (vehiclematch.py)
+        self.vehicle_report: dict[str, Any] = {}  # summary.json "hover": pre-flight and after take-off comparisons
 
     # ------------------------------------------------------------------------------ public
     def trip(self, reason: Reason, detail: str) -> None:
@@ -209,6 +213,7 @@ class FlightApp(Monitors, SafeEnds):
                                      "p95": float(np.percentile(lat, 95)) if lat.size else None, "n": int(lat.size)},
             "cpu_percent": 100.0 * self.stats.cpu_s / self.stats.wall_s if self.stats.wall_s > 0 else None,
             "states": [h.dst.value for h in self.sm.history],
+            "hover": self.vehicle_report,
         }
 
     def _truth_summary(self) -> dict[str, Any] | None:
@@ -237,6 +242,7 @@ class FlightApp(Monitors, SafeEnds):
         await self._check_failsafe_params()
         if hover is not None and 0.05 < hover < 0.95:
             self.ctrl = self.ctrl.with_hover_thrust(hover, cfg.airframe.thrust_to_weight)
+            self._mpc_thr_hover = hover if getattr(self.link, "hover_thrust_source", "config") == "autopilot" else None
             self.log.event(f"hover thrust {hover:.3f} from MPC_THR_HOVER")
         ref = cfg.safety.altitude_reference  # an app started in the air is told where the ground is
         self._baro0 = self._baro_raw() if ref is None else ref  # on the ground: the altitude floor is above this
@@ -321,6 +327,7 @@ class FlightApp(Monitors, SafeEnds):
         ENGAGE -> PASS -> RECOVER (-> ENGAGE ...) -> HANDBACK, or an abort; here only I/O: camera, perception,
         the setpoint to PX4, the state machine and the log."""
         self.core = FlightCore.from_config(self.cfg, controller=self.ctrl)  # with the autopilot's hover thrust
+        self._hover_check = HoverAfterTakeoff(self, self._mpc_thr_hover)  # PX4's hover, before the engagement
         self._confirm = (OperatorConfirm(ConfirmParams.from_config(self.cfg))
                          if engage_mode(self.cfg) == "confirm" else None)
         gcs = None
@@ -363,6 +370,8 @@ class FlightApp(Monitors, SafeEnds):
                 if self._confirm.withdrawn is not None:
                     self.log.event(f"confirmation withdrawn: {self._confirm.withdrawn}", "warn")
                     self._confirm.withdrawn = None
+            if self._hover_check is not None and not self._hover_check.done:  # before the first setpoint
+                self._hover_check.frame(core, self.sm.state is State.ACQUIRE, t_avail)
             step = core.step(inp)
             d = step.decision
             if d.control is not None:

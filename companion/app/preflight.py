@@ -43,6 +43,7 @@ async def gather(app: Any) -> dict[str, Any]:
         "armable": _armable(link),
         "failsafe": await _failsafe(app),
         "hover_thrust": _hover(app),
+        "px4_params": await _px4_params(app),
         "camera": await _camera(app),
         "pn": {"k_pn": cfg.guidance.k_pn, "gamma_bar_deg": cfg.guidance.gamma_bar,
                "v_rel_bar_mps": cfg.guidance.v_rel_bar, "fov": cfg.guidance.fov,
@@ -87,6 +88,21 @@ def _hover(app: Any) -> dict[str, Any]:
     return {"value": value, "source": _hover_source(app), "in_flight_estimate": bool(cfg.hover.estimate),
             "configured": cfg.airframe.hover_thrust, "autopilot": px4,
             "mismatch": hover_mismatch(cfg.airframe.hover_thrust, px4, value, bool(cfg.hover.estimate))}
+
+
+async def _px4_params(app: Any) -> dict[str, Any]:
+    """PX4's parameters that decide the flight beside the hover thrust (companion/vehiclematch.py PARAM_PAIRS),
+    and one line for each that disagrees with the airframe."""
+    from companion.vehiclematch import PARAM_PAIRS, param_mismatches
+
+    values: dict[str, float | None] = {}
+    reader = getattr(app.link, "read_param", None)
+    for name in PARAM_PAIRS:
+        try:
+            values[name] = None if reader is None else float(await reader(name, 2.0))
+        except Exception:  # (not answered, or not a PX4 parameter here): not compared
+            values[name] = None
+    return {"values": values, "mismatches": param_mismatches(values, app.cfg.airframe)}
 
 
 def _hover_source(app: Any) -> str:
@@ -225,6 +241,8 @@ def format_summary(s: dict[str, Any]) -> str:
     ]
     if hv.get("mismatch"):
         lines.append(f"  WARNING     {hv['mismatch']}")
+    for m in s.get("px4_params", {}).get("mismatches", []):
+        lines.append(f"params        {m}")
     lines += [
         f"camera        {cam['source']}: measured {v(cam.get('rate_hz'))} Hz (configured "
         f"{v(cam.get('configured_rate_hz'))} Hz)" + (f"; {cam['note']}" if cam.get("note") else "")
@@ -261,6 +279,9 @@ async def run(app: Any, confirm: Confirm | None) -> str | None:
     s = await gather(app)
     text = format_summary(s)
     app.log.write_json("preflight.json", json.loads(json.dumps(s, default=str)))  # never raises (a full disk)
+    report = getattr(app, "vehicle_report", None)
+    if report is not None:  # summary.json "hover": what pre-flight compared
+        report["preflight"] = {"hover_thrust": s["hover_thrust"], "px4_params": s["px4_params"]}
     for line in text.splitlines()[1:-1]:
         app.log.event("preflight: " + " ".join(line.split()))
     will_arm = app.cfg.app.start == "takeoff"

@@ -172,6 +172,8 @@ class TelemetryStreams:
         self._lost = False
         self._mode_reports = 0
         self.rc: Any = None  # the newest RC_CHANNELS (companion.confirm.RcReading): the engage switch
+        # ATTITUDE_TARGET: the thrust PX4 commands, the hover it really needs after take-off (companion/vehiclematch.py)
+        self.thrust_targets: deque[Any] = deque(maxlen=300)
 
     def _start_telemetry(self) -> None:
         tel = self._telemetry
@@ -179,6 +181,7 @@ class TelemetryStreams:
             ("attitude", lambda: self._direct.subscribe_message("ATTITUDE_QUATERNION"), self._on_attitude_msg),
             ("events", lambda: self._direct.subscribe_message("EVENT"), self._on_event_msg),
             ("rc_channels", lambda: self._direct.subscribe_message("RC_CHANNELS"), self._on_rc_msg),
+            ("attitude_target", lambda: self._direct.subscribe_message("ATTITUDE_TARGET"), self._on_att_target_msg),
             ("imu", tel.subscribe_imu, self._on_imu),
             ("flight_mode", tel.subscribe_flight_mode, self._on_mode),
             ("armed", tel.subscribe_armed, self._on_armed),
@@ -236,6 +239,22 @@ class TelemetryStreams:
             self.rc = RcReading(time.monotonic(), tuple(int(f[f"chan{i}_raw"]) for i in range(1, 19))[:max(n, 0)])
         except (ValueError, KeyError, TypeError):
             return  # unreadable: the reading goes stale, which withdraws a confirmation
+
+    def _on_att_target_msg(self, msg: Any) -> None:
+        """ATTITUDE_TARGET (10 Hz on PX4 1.15's onboard link): PX4's attitude setpoint and collective thrust."""
+        from companion.vehiclematch import ThrustSample
+
+        if not self._from_autopilot(msg):
+            return
+        try:
+            f = json.loads(msg.fields_json)
+            q = (float(f["q"][0]), float(f["q"][1]), float(f["q"][2]), float(f["q"][3]))
+            thrust = float(f["thrust"])
+        except (ValueError, KeyError, TypeError, IndexError):
+            return  # unreadable: one sample fewer
+        baro = self._baro
+        self.thrust_targets.append(ThrustSample(time.monotonic(), thrust, q, self._flight_mode, self._landed,
+                                                None if baro is None else baro.altitude_m))
 
     def _on_attitude(self, q: list[Any], t_ms: int) -> None:
         prev = self._attitude

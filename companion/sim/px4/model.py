@@ -189,6 +189,8 @@ class Px4Model:
         self.sp_time = -math.inf
         self.sp_count = 0
         self.sp_rx_mono = math.nan
+        self.cmd_q_enu_flu: np.ndarray | None = None  # the attitude and thrust commanded at the last tick
+        self.cmd_thrust = 0.0
         s = self.quad.state
         self._hold_p = np.array(s.p, float)
         self._hold_yaw = self._yaw_of(s.q)
@@ -286,6 +288,7 @@ class Px4Model:
     # ---------------------------------------------------------------------------- physics + FSM
     def physics_step(self) -> None:
         q_cmd, thrust = self._control()
+        self.cmd_q_enu_flu, self.cmd_thrust = q_cmd, thrust  # what PX4 streams as ATTITUDE_TARGET
         self.quad.step(self.dt, q_cmd, thrust, self._wind.step(self.dt))
         self.t += self.dt
         self._supervise()

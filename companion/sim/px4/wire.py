@@ -91,6 +91,7 @@ class MavlinkWire:
             mavlink.MAVLINK_MSG_ID_ALTITUDE: 0.05,
             mavlink.MAVLINK_MSG_ID_HOME_POSITION: 2.0,
             mavlink.MAVLINK_MSG_ID_RC_CHANNELS: 0.1,  # only while an RC is connected (set_rc)
+            mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: 0.1,  # PX4 1.15's onboard link: 10 Hz
         }
         self._rates: dict[int, float] = dict(self._default_rates)  # msg id -> interval s (0 = off)
         self._next_send: dict[int, float] = dict.fromkeys(self._rates, 0.0)
@@ -427,5 +428,11 @@ class MavlinkWire:
         if mavlink.MAVLINK_MSG_ID_RC_CHANNELS in due and self._rc is not None:
             ch = self._rc + [65535] * (18 - len(self._rc))  # UINT16_MAX: channel not in use
             self._send(self._mav.rc_channels_encode(ms, len(self._rc), *ch, 255))
+        if mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET in due and model.cmd_q_enu_flu is not None:
+            # The commanded attitude and collective thrust (PX4: vehicle_attitude_setpoint; its own modes fly
+            # the true hover thrust here, like PX4's converged hover-thrust estimator).
+            x, y, z, w = matrix_to_quat(R_ned_frd_from_enu_flu(quat_to_matrix(model.cmd_q_enu_flu)))
+            self._send(self._mav.attitude_target_encode(ms, 0, [w, x, y, z], 0.0, 0.0, 0.0,
+                                                        float(model.cmd_thrust)))
         if mavlink.MAVLINK_MSG_ID_HEARTBEAT in due:
             self._send_heartbeat()
