@@ -25,19 +25,21 @@ does) and the clearance (the least true distance between the vehicle and the tar
 * else ``OK``: "intercept: pulled up at 23.8 m/s, predicted miss 0.40 m, cleared by 1.70 m (ground truth)".
 
 The judge's samples arrive from the telemetry monitor (vehicle position) and the camera (gate
-positions) on the same monotonic clock; a moving gate is extrapolated linearly from its last two
-samples to each vehicle sample.
+positions) on the same monotonic clock. A vehicle sample waits (at most ``MAX_WAIT``) for the gate sample at or
+after its time, so a moving gate is interpolated to it, as a re-score of the flight log does (the log's truth rows
+carry the sample's own time, ``t_truth``); it used to be extrapolated from the last two gate samples, which
+put a swinging gate centimetres off when frames came late under load. After the flight every waiting sample is
+scored (extrapolated past the last gate sample).
 
 Why a PX4 flight's printed gate line once said 0.05 m while summary.json's truth said 0.121 m: the line was
-re-scored from the flight log, the truth judged live here, on other samples. The log stamps a truth row
-when the telemetry loop writes it (every 50 ms, the latest sample again if none came since) while the judge
-takes each sample at its arrival time, and the log interpolates the gate between its rows where the judge
-extrapolates it: a moving gate is compared at other instants. The printed line now reads this judge's
-record (``GateResult.as_dict`` keeps the crossing time for it; tests/app/test_outcome.py reproduces the case).
+re-scored from the flight log, the truth judged live here, on other samples (rows stamped when written, the gate
+extrapolated). The printed line reads this judge's record (``GateResult.as_dict`` keeps the crossing time for
+it; tests/app/test_outcome.py reproduces the case).
 """
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -55,28 +57,62 @@ IMPACT_DISTANCE = 0.5
 TRACK_MAX = 60_000  # vehicle samples kept per target for the intercept score (20 min at 50 Hz)
 
 
+GATE_HISTORY = 64  # gate samples kept per gate for interpolation (~2 s at 30 Hz)
+MAX_WAIT = 0.5  # s: a vehicle sample waits at most this long for the gate sample after it, then extrapolates
+
+
 @dataclass
 class _Gate:
     k: int
     radius: float
     plane: GatePlane
     first: PlaneCrossing | None = None  # the first crossing: the gate's score
-    samples: list[tuple[float, np.ndarray]] = field(default_factory=list)  # (t, centre NED), the last two
+    samples: deque = field(default_factory=lambda: deque(maxlen=GATE_HISTORY))  # (t, centre NED), time order
+    # vehicle samples (t, p, v) not yet scored: they wait for a gate sample at or after their time, so the gate
+    # is interpolated to them (as a re-score of the flight log does) rather than extrapolated, however late the
+    # camera's frames come under load
+    pending: deque = field(default_factory=deque)
     # (t, vehicle position, vehicle velocity, centre, centre velocity), NED: the intercept's score reads it
     track: deque = field(default_factory=lambda: deque(maxlen=TRACK_MAX))
 
     def centre_at(self, t: float) -> np.ndarray:
-        (t1, c1) = self.samples[-1]
-        if len(self.samples) < 2:
+        """Interpolated between the samples around ``t``; extrapolated from the last two beyond them."""
+        s = self.samples
+        (t1, c1) = s[-1]
+        if len(s) < 2:
             return c1
-        t0, c0 = self.samples[-2]
-        return c1 if t1 <= t0 else c1 + (c1 - c0) * ((t - t1) / (t1 - t0))
+        if t < t1:
+            for i in range(len(s) - 2, -1, -1):
+                t0, c0 = s[i]
+                if t0 <= t:
+                    ta, ca = s[i + 1]
+                    return c0 + (ca - c0) * ((t - t0) / (ta - t0))
+            return s[0][1]  # older than every sample kept
+        t0, c0 = s[-2]
+        return c1 + (c1 - c0) * ((t - t1) / (t1 - t0))
 
-    def velocity(self) -> np.ndarray:
-        if len(self.samples) < 2 or self.samples[1][0] <= self.samples[0][0]:
+    def velocity(self, t: float) -> np.ndarray:
+        s = self.samples
+        if len(s) < 2:
             return np.zeros(3)
-        (t0, c0), (t1, c1) = self.samples
+        i = len(s) - 1
+        while i > 1 and s[i - 1][0] > t:
+            i -= 1
+        (t0, c0), (t1, c1) = s[i - 1], s[i]
         return (c1 - c0) / (t1 - t0)
+
+    def drain(self, t_now: float | None) -> None:
+        """Score the waiting vehicle samples the gate's samples now reach (all of them when ``t_now`` is None:
+        the flight is over; also those older than ``MAX_WAIT`` before ``t_now``: the camera stopped)."""
+        while self.pending and self.samples:
+            t, p, v = self.pending[0]
+            if t > self.samples[-1][0] and t_now is not None and t_now - t <= MAX_WAIT:
+                return
+            self.pending.popleft()
+            c = self.centre_at(t)
+            if self.first is None:
+                self.first = self.plane.update(t, p, c)
+            self.track.append((t, p, v, c, self.velocity(t)))
 
 
 @dataclass(frozen=True)
@@ -133,6 +169,7 @@ class GateJudge:
         self.vehicle_samples = 0
         self.box = box
         self._prev: tuple[float, np.ndarray] | None = None
+        self._lock = threading.Lock()
 
     @classmethod
     def for_config(cls, cfg: Any) -> GateJudge:
@@ -140,12 +177,14 @@ class GateJudge:
         return cls(tuple(cfg.sim.target.size(cfg.app.synthetic.radius)))
 
     def gate(self, t: float, k: int, centre_ned: np.ndarray, normal_ned: np.ndarray, radius: float) -> None:
-        g = self._gates.get(k)
-        if g is None:
-            g = self._gates[k] = _Gate(k, float(radius), GatePlane(np.asarray(normal_ned, dtype=float)))
-        if g.samples and t <= g.samples[-1][0]:
-            return
-        g.samples = [*g.samples[-1:], (float(t), np.asarray(centre_ned, dtype=float).copy())]
+        with self._lock:
+            g = self._gates.get(k)
+            if g is None:
+                g = self._gates[k] = _Gate(k, float(radius), GatePlane(np.asarray(normal_ned, dtype=float)))
+            if g.samples and t <= g.samples[-1][0]:
+                return
+            g.samples.append((float(t), np.asarray(centre_ned, dtype=float).copy()))
+            g.drain(self._prev[0] if self._prev is not None else t)
 
     def vehicle(self, t: float, p_ned: np.ndarray, v_ned: np.ndarray | None = None) -> None:
         """One true sample; without a velocity it is the difference from the previous sample."""
@@ -162,17 +201,23 @@ class GateJudge:
             return  # the same sample again (the telemetry loop logs the latest one every period)
         self._prev = (t, p.copy())
         self.vehicle_samples += 1
-        for g in list(self._gates.values()):  # a copy: the image camera adds gates from its worker thread
-            c = g.centre_at(t)
-            if g.first is None:
-                g.first = g.plane.update(t, p, c)
-            g.track.append((t, p.copy(), v, c, g.velocity()))
+        with self._lock:  # the image camera adds gates and samples from its worker thread
+            for g in self._gates.values():
+                g.pending.append((t, p.copy(), v))
+                g.drain(t)
+
+    def _flush(self) -> None:
+        """Score every waiting sample (the flight is over: no later gate sample will come)."""
+        with self._lock:
+            for g in self._gates.values():
+                g.drain(None)
 
     @property
     def has_truth(self) -> bool:
         return bool(self._gates) and self.vehicle_samples >= 2
 
     def results(self) -> list[GateResult]:
+        self._flush()
         out = []
         for k in sorted(self._gates):
             g = self._gates[k]
@@ -183,6 +228,7 @@ class GateJudge:
     def intercepts(self, passes: list[GatePass]) -> dict[int, InterceptResult]:
         """Each pulled-up pass (keyed by its gate number) scored against the target in front of the vehicle and
         nearest to it at the pull-up. A pass with no target ahead, or no sample before its pull-up, is left out."""
+        self._flush()
         out: dict[int, InterceptResult] = {}
         for gp in passes:
             if gp.status != "pulled_up" or gp.t_end is None:

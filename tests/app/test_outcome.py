@@ -22,7 +22,7 @@ def fly_past(judge: GateJudge, offset_e: float, gate_v_e: float = 0.0, dt: float
     for i in range(80):
         t = i * dt
         judge.gate(t, 1, np.array([20.0, gate_v_e * t, -5.0]), NORMAL, 1.0)
-        tv = t + 0.01  # the vehicle sampled between gate samples: the gate is extrapolated to tv
+        tv = t + 0.01  # the vehicle sampled between gate samples: the gate is interpolated to tv
         judge.vehicle(tv, np.array([10.0 * tv, offset_e, -5.0]))
 
 
@@ -38,7 +38,7 @@ def test_judge_scores_the_crossing_distance_against_the_radius():
     assert g.crossed and not g.through and g.d_center == pytest.approx(1.3, abs=1e-9)
 
 
-def test_judge_extrapolates_a_moving_gate_to_the_vehicle_sample_time():
+def test_judge_moves_a_moving_gate_to_the_vehicle_sample_time():
     j = GateJudge()
     fly_past(j, 0.0, gate_v_e=2.0)  # crossing at t = 2 s: the gate is at e = 4 m then
     (g,) = j.results()
@@ -293,3 +293,39 @@ def test_a_pull_up_from_a_track_beside_the_target_is_a_missed_target():
     assert reason is Reason.TARGET_MISSED and int(reason) == 35
     assert "predicted miss 2.00 m, outside its 2.5 x 3 m box" in line
     assert len({int(x) for x in Reason}) == len(Reason)  # every outcome its own exit code
+
+
+def test_a_swinging_gate_is_interpolated_to_the_vehicle_sample_even_when_its_frames_come_late():
+    """Under load the camera's gate samples arrive late and unevenly; the judge waits for the gate sample after
+    each vehicle sample and interpolates, so it scores exactly what the log's re-score (np.interp of the gate to
+    the truth rows, the same plane geometry) scores. Extrapolating from the last two samples was > 2 cm off."""
+    from companion.scoring import plane_crossings
+
+    rng = np.random.default_rng(3)
+    gate_t = np.cumsum(rng.uniform(0.03, 0.12, 60))  # 8-30 Hz, irregular
+    swing = lambda t: np.array([20.0, 1.5 * np.sin(2.0 * np.pi * 0.5 * t), -5.0])  # noqa: E731
+    veh_t = np.arange(0.02, gate_t[-1], 0.05)  # 20 Hz truth
+    veh = lambda t: np.array([10.0 * t - 5.0, 0.2, -5.0])  # noqa: E731  (crosses n = 20 at t = 2.5 s)
+    j = GateJudge()
+    events = sorted([(t, 1, "g") for t in gate_t] + [(t + 0.0001, 0, "v") for t in veh_t])
+    for t, _, kind in events:  # a vehicle sample arrives before the camera's next gate sample
+        if kind == "g":
+            j.gate(t, 1, swing(t), NORMAL, 1.0)
+        else:
+            j.vehicle(t - 0.0001, veh(t - 0.0001))
+    (r,) = j.results()
+    # the log's re-score: the gate interpolated to each truth row (rows inside the gate's time span)
+    sel = (veh_t >= gate_t[0]) & (veh_t <= gate_t[-1])
+    g = np.column_stack([np.interp(veh_t[sel], gate_t, [swing(t)[i] for t in gate_t]) for i in range(3)])
+    (c,) = plane_crossings(NORMAL, veh_t[sel], np.array([veh(t) for t in veh_t[sel]]), g)
+    assert r.crossed and r.t == pytest.approx(c.t, abs=1e-12) and r.d_center == pytest.approx(c.d_center, abs=1e-12)
+    # the scenario matters: the old judge (the gate extrapolated from the two samples before each vehicle
+    # sample) scores this crossing several centimetres off
+    vt = veh_t[sel]
+    old = []
+    for t in vt:
+        k = np.searchsorted(gate_t, t) - 1
+        t0, t1 = gate_t[k - 1], gate_t[k]
+        old.append(swing(t1) + (swing(t1) - swing(t0)) * (t - t1) / (t1 - t0))
+    (o,) = plane_crossings(NORMAL, vt, np.array([veh(t) for t in vt]), np.array(old))
+    assert abs(o.d_center - c.d_center) > 0.05
