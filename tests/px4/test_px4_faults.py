@@ -77,11 +77,16 @@ def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: 
     assert states(folder)[-1] == "SAFE_HOLD", states(folder)
     st = px4.status()
     assert st.armed and st.nav_mode == "Hold", st  # commanded and confirmed before the app named it
+    # Held, not climbing on to the 12 m take-off: when the Hold lands during PX4's lift-off ramp (a loaded
+    # machine: the vehicle was still on the ground, CI 2026-12-02 saw 0.0 -> 1.04 m in 3 s) PX4 finishes leaving
+    # the ground and stops; so the rise is bounded and the height is steady at the end, not "< 1 m in 3 s".
     h0 = _height(px4)
-    time.sleep(3.0)
+    time.sleep(4.5)
     h1 = _height(px4)
-    assert h1 - h0 < 1.0, f"still climbing after the app said Hold: {h0:.1f} m -> {h1:.1f} m"
-    assert h1 < 10.0
+    time.sleep(1.5)
+    h2 = _height(px4)
+    assert abs(h2 - h1) < 0.3, f"still climbing after the app said Hold: {h0:.1f} -> {h1:.1f} -> {h2:.1f} m"
+    assert h2 - h0 < 2.5 and h2 < 10.0, f"climbed on after the app said Hold: {h0:.1f} -> {h2:.1f} m"
 
 
 def _take_off_by_px4(px4: PX4Sitl, lift_off_s: float = 25.0) -> bool:
