@@ -25,8 +25,8 @@ SETTLE_S = 0.5  # s after PX4's hover began (landed state IN_AIR) before its thr
 @dataclass(frozen=True)
 class ThrustSample:
     """One ATTITUDE_TARGET: received at ``t`` (monotonic s), PX4's collective thrust (0..1), its attitude
-    setpoint (w, x, y, z; NED/FRD), and at reception: the mode, the landed state and the barometric altitude
-    above the take-off point."""
+    setpoint (w, x, y, z; NED/FRD), and at reception: the mode, the landed state and PX4's barometric
+    altitude (raw: the ground is the app's own reference, taken at arm or given by safety.altitude_reference)."""
 
     t: float
     thrust: float
@@ -45,15 +45,16 @@ def vertical_thrust(thrust: float, q_wxyz: tuple[float, float, float, float]) ->
     return thrust * (1.0 - 2.0 * (x * x + y * y) / n)
 
 
-def hovering(s: ThrustSample) -> bool:
+def hovering(s: ThrustSample, ground: float | None = None) -> bool:
     """PX4 flies the vehicle itself in the air, off the ground: landed state IN_AIR (PX4 reports it once the
-    take-off climb is over), not our OFFBOARD setpoints, not a landing."""
+    take-off climb is over), not our OFFBOARD setpoints, not a landing, and more than MIN_ALT above ``ground``
+    (the app's raw barometric ground reference; unknown: PX4's IN_AIR decides)."""
     return (s.landed == "IN_AIR" and s.mode not in (None, "OFFBOARD", "LAND", "RTL")
-            and s.alt is not None and s.alt > MIN_ALT)
+            and (ground is None or (s.alt is not None and s.alt - ground > MIN_ALT)))
 
 
 def measured_hover(samples: Iterable[ThrustSample], until: float = math.inf,
-                   need: int = MIN_SAMPLES) -> tuple[float | None, int]:
+                   need: int = MIN_SAMPLES, ground: float | None = None) -> tuple[float | None, int]:
     """(median vertical thrust PX4 commanded in its newest WINDOW hover samples received up to ``until``,
     number used); (None, n) with fewer than ``need``.
 
@@ -63,7 +64,7 @@ def measured_hover(samples: Iterable[ThrustSample], until: float = math.inf,
     to 0.35 in the first 0.5 s of IN_AIR, then swings 0.38-0.44 for ~1 s; medians of 5-10 samples from 0.5 s on
     were 0.39-0.41).
     """
-    hover = [s for s in samples if hovering(s)]
+    hover = [s for s in samples if hovering(s, ground)]
     if not hover:
         return None, 0
     start = hover[0].t + SETTLE_S

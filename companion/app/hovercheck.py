@@ -34,7 +34,8 @@ class HoverAfterTakeoff:
         # Take-off and hold, up to the last frame before our first setpoint (the mode PX4 reports lags 0.2-1 s).
         # In ACQUIRE: a full window (the newest second of PX4's hover); after it, whatever there was.
         measured, n = measured_hover(list(getattr(self.app.link, "thrust_targets", ())), until=self.until,
-                                     need=WINDOW if acquiring else MIN_SAMPLES)
+                                     need=WINDOW if acquiring else MIN_SAMPLES,
+                                     ground=getattr(self.app, "_baro0", None))  # the app's ground (raw baro)
         if acquiring and measured is None:
             return  # not yet: PX4 still holds, more samples come
         self.done = True

@@ -254,7 +254,7 @@ class TelemetryStreams:
             return  # unreadable: one sample fewer
         baro = self._baro
         self.thrust_targets.append(ThrustSample(time.monotonic(), thrust, q, self._flight_mode, self._landed,
-                                                None if baro is None else baro.altitude_m))
+                                                None if baro is None else baro.altitude_raw_m))
 
     def _on_attitude(self, q: list[Any], t_ms: int) -> None:
         prev = self._attitude

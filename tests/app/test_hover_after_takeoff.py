@@ -52,7 +52,12 @@ def test_vertical_thrust_and_median():
     # (TAKING_OFF), on or near the ground.
     other = [hold(9.0, 0.9), hold(2.0, 0.9, mode="OFFBOARD"), hold(2.0, 0.1, landed="ON_GROUND"),
              hold(2.0, 0.8, landed="TAKING_OFF"), hold(2.0, 0.8, alt=0.2)]
-    assert measured_hover(ok + other, until=5.0) == (pytest.approx(0.40), MIN_SAMPLES)
+    assert measured_hover(ok + other, until=5.0, ground=0.0) == (pytest.approx(0.40), MIN_SAMPLES)
+    # Above the app's ground reference (raw barometric altitude), not above wherever the barometer first read:
+    # 0.2 m over a ground at -4.9 m is 5.1 m up; with no ground known, PX4's IN_AIR decides.
+    assert measured_hover([*ok, hold(2.0, 0.40, alt=0.2)], ground=-4.9) == (pytest.approx(0.40), MIN_SAMPLES + 1)
+    assert measured_hover([*ok, hold(2.0, 0.40, alt=0.2)], ground=0.0) == (pytest.approx(0.40), MIN_SAMPLES)
+    assert measured_hover([*ok, hold(2.0, 0.40, alt=None)]) == (pytest.approx(0.40), MIN_SAMPLES + 1)
     assert measured_hover(ok[:-1]) == (None, MIN_SAMPLES - 1)
     assert measured_hover(ok, need=WINDOW) == (None, MIN_SAMPLES)
     # The newest WINDOW only: the take-off's end swings, the hover after it counts.
@@ -134,3 +139,41 @@ def test_a_matched_vehicle_is_no_warning(tmp_path):
     assert r["px4_commanded"] == pytest.approx(true_hover, abs=0.01) and true_hover == pytest.approx(0.5)
     assert not r["warning"] and not r["line"].startswith("WARNING") and r["flies"] == 0.5
     assert "WARNING hover thrust" not in console and "hover thrust after take-off: PX4 commands 0.50" in console
+
+
+def test_a_vehicle_already_hovering_when_the_app_starts_is_measured_too(tmp_path):
+    """app.start=pilot with the vehicle in the air before the app connects (the PX4 studies, a pilot who took off
+    first; the app is told the ground with safety.altitude_reference): the height is taken above that ground, not
+    above the barometer's first reading in the air. The old rule measured nothing here (0 samples)."""
+    from pymavlink import mavutil
+
+    from companion.sim.px4.wire import HOME_ALT
+
+    vehicle = load_config([], ["sim.seed=7", "sim.quad.mass_scale=0.8"])
+    true_hover = QuadParams.from_config(vehicle).hover_thrust
+    px4 = SimPX4(vehicle, px4_params={**FAST_PX4, "MPC_THR_HOVER": 0.5})
+    px4.start()
+    try:
+        px4.set_param("MIS_TAKEOFF_ALT", 5.0)  # a ground station arms and takes off before the app starts
+        gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{px4.port}", source_system=255, source_component=190)
+        try:
+            gcs.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+            assert px4.wait_for(lambda: px4.armed, timeout=5.0)
+            gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan,
+                                      math.nan, math.nan)
+            assert px4.wait_event("mode:HOLD:takeoff_done", timeout=20.0) is not None
+            px4.pilot_takeover("POSCTL")  # the pilot hovers in position mode, sticks centred
+        finally:
+            gcs.close()
+        cfg = make_config(tmp_path, px4.url_for_mavsdk, "app.start=pilot", "app.synthetic.motion=stationary",
+                          "app.acquire_frames=45", f"safety.altitude_reference={HOME_ALT}")
+        console = io.StringIO()
+        reason, _, summary = asyncio.run(asyncio.wait_for(
+            fly(cfg, plot=False, handle_signals=False, stderr=console), FLIGHT_TIMEOUT))
+    finally:
+        px4.stop()
+    assert "after_takeoff" in summary.get("hover", {}), (reason, summary, console.getvalue())
+    r = summary["hover"]["after_takeoff"]
+    assert r["px4_commanded"] == pytest.approx(true_hover, abs=0.01) and r["warning"], (r, console.getvalue())
+    assert reason is Reason.OK, summary
