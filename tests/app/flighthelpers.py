@@ -7,6 +7,8 @@ landing takes ~20 s, a fault flight ~10 s.
 from __future__ import annotations
 
 import asyncio
+import math
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -66,3 +68,23 @@ def run_flight(cfg: Config, alongside: Callable[[Any], Awaitable[None]] | None =
     if errors:
         raise errors[0]
     return result
+
+
+def pilot_takes_off(sim, altitude: float) -> None:
+    """A pilot (here a ground station over MAVLink, as QGroundControl would) arms and takes off, then POSCTL."""
+    from pymavlink import mavutil
+
+    sim.set_param("MIS_TAKEOFF_ALT", altitude)
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{sim.port}", source_system=255, source_component=190)
+    try:
+        gcs.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        assert sim.wait_for(lambda: sim.armed, timeout=5.0)
+        # param7 NaN: PX4 climbs to MIS_TAKEOFF_ALT above home (param7 would be an AMSL altitude).
+        gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan,
+                                  math.nan, math.nan)
+        assert sim.wait_event("mode:HOLD:takeoff_done", timeout=20.0) is not None
+        time.sleep(0.5)
+        sim.pilot_takeover("POSCTL")  # the pilot hovers in position mode, sticks centred
+    finally:
+        gcs.close()

@@ -4,11 +4,9 @@ own event list confirms it independently."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
-from flighthelpers import make_config, run_flight, wait_state
+from flighthelpers import make_config, pilot_takes_off, run_flight, wait_state
 
 from companion.app.states import Reason
 from companion.flightlog import gate_crossings, read_flight
@@ -102,28 +100,6 @@ def test_next_gate_in_view_is_engaged(sim, tmp_path):
     assert len(crossings) == 2 and all(c.through for c in crossings), crossings
 
 
-def _pilot_takes_off(sim, altitude: float) -> None:
-    """A pilot (here a ground station over MAVLink, as QGroundControl would) arms and takes off, then POSCTL."""
-    import time
-
-    from pymavlink import mavutil
-
-    sim.set_param("MIS_TAKEOFF_ALT", altitude)
-    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{sim.port}", source_system=255, source_component=190)
-    try:
-        gcs.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-        gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-        assert sim.wait_for(lambda: sim.armed, timeout=5.0)
-        # param7 NaN: PX4 climbs to MIS_TAKEOFF_ALT above home (param7 would be an AMSL altitude).
-        gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan,
-                                  math.nan, math.nan)
-        assert sim.wait_event("mode:HOLD:takeoff_done", timeout=20.0) is not None
-        time.sleep(0.5)
-        sim.pilot_takeover("POSCTL")  # the pilot hovers in position mode, sticks centred
-    finally:
-        gcs.close()
-
-
 def test_pilot_start_waits_for_the_pilots_hover(sim, tmp_path):
     """app.start=pilot: the app never arms; it waits, engages from the pilot's hover, and hands back to HOLD."""
     import asyncio
@@ -132,7 +108,7 @@ def test_pilot_start_waits_for_the_pilots_hover(sim, tmp_path):
         await wait_state(app, "WAIT_PILOT")
         await asyncio.sleep(1.0)
         assert not sim.armed  # the app did not arm
-        await asyncio.get_running_loop().run_in_executor(None, _pilot_takes_off, sim, 5.0)
+        await asyncio.get_running_loop().run_in_executor(None, pilot_takes_off, sim, 5.0)
 
     cfg = make_config(tmp_path, sim.url_for_mavsdk, "app.start=pilot")
     reason, folder, summary = run_flight(cfg, pilot)

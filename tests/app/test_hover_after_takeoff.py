@@ -10,7 +10,7 @@ import json
 import math
 
 import pytest
-from flighthelpers import FAST_PX4, FLIGHT_TIMEOUT, make_config
+from flighthelpers import FAST_PX4, FLIGHT_TIMEOUT, make_config, pilot_takes_off
 
 from companion.app.session import fly
 from companion.app.states import Reason
@@ -145,8 +145,6 @@ def test_a_vehicle_already_hovering_when_the_app_starts_is_measured_too(tmp_path
     """app.start=pilot with the vehicle in the air before the app connects (the PX4 studies, a pilot who took off
     first; the app is told the ground with safety.altitude_reference): the height is taken above that ground, not
     above the barometer's first reading in the air. The old rule measured nothing here (0 samples)."""
-    from pymavlink import mavutil
-
     from companion.sim.px4.wire import HOME_ALT
 
     vehicle = load_config([], ["sim.seed=7", "sim.quad.mass_scale=0.8"])
@@ -154,18 +152,7 @@ def test_a_vehicle_already_hovering_when_the_app_starts_is_measured_too(tmp_path
     px4 = SimPX4(vehicle, px4_params={**FAST_PX4, "MPC_THR_HOVER": 0.5})
     px4.start()
     try:
-        px4.set_param("MIS_TAKEOFF_ALT", 5.0)  # a ground station arms and takes off before the app starts
-        gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{px4.port}", source_system=255, source_component=190)
-        try:
-            gcs.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-            assert px4.wait_for(lambda: px4.armed, timeout=5.0)
-            gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan,
-                                      math.nan, math.nan)
-            assert px4.wait_event("mode:HOLD:takeoff_done", timeout=20.0) is not None
-            px4.pilot_takeover("POSCTL")  # the pilot hovers in position mode, sticks centred
-        finally:
-            gcs.close()
+        pilot_takes_off(px4, 5.0)  # a ground station arms and takes off before the app starts, then POSCTL
         cfg = make_config(tmp_path, px4.url_for_mavsdk, "app.start=pilot", "app.synthetic.motion=stationary",
                           "app.acquire_frames=45", f"safety.altitude_reference={HOME_ALT}")
         console = io.StringIO()
