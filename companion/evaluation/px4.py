@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from companion.evaluation.suites import PAPER, TABLE1_MOTIONS, build_suite
+from companion.evaluation.suites import PAPER, TABLE1_MOTIONS, app_run_seed, build_suite
 from companion.evaluation.tables import latency_table, setpoint_table
 from companion.px4sitl.truth import EARTH_RADIUS, SihTruth
 
@@ -354,8 +354,8 @@ def px4_jobs(suite_name: str, cfg: Config, runs: int | None, seed: int, motions:
         by_motion.setdefault(j.spec.motion, []).append(j)
     order = [by_motion[m][i] for i in range(per) for m in picked if i < len(by_motion.get(m, []))]
     render = "image" if camera == "rendered" else "geometric"
-    jobs = [Px4Job(k, {**j.group, "seed": j.spec.seed},
-                   (f"app.synthetic.motion={j.spec.motion}", f"sim.seed={j.spec.seed}",
+    jobs = [Px4Job(k, {**j.group, "seed": j.spec.seed, "sim_seed": app_run_seed(seed, j.spec.seed)},
+                   (f"app.synthetic.motion={j.spec.motion}", f"sim.seed={app_run_seed(seed, j.spec.seed)}",
                     f"app.synthetic.render={render}"))
             for k, j in enumerate(order)]
     return jobs, suite

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.evaluation.intercept import GOALS, INTERCEPT_GROUPS, TARGET_H, TARGET_W, suite_intercept
+from companion.evaluation.suites import app_run_seed
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -56,8 +57,9 @@ def px4_intercept_runs(cfg: Config, runs: int | None, seed: int, camera: str
               f"sim.target.on_ground={str(bool(g['on_ground'])).lower()}",
               f"sim.gates.recede_speed={g['target_speed_mps']}", "app.synthetic.motion=recede",
               f"app.synthetic.distance={g['start_m']}", f"app.synthetic.height_offset={dz}",
-              "app.synthetic.render=geometric", f"sim.seed={j.spec.seed}")
-        out.append(({**g, "seed": j.spec.seed, "height_offset_m": dz}, ov))
+              "app.synthetic.render=geometric", f"sim.seed={app_run_seed(seed, j.spec.seed)}")
+        out.append(({**g, "seed": j.spec.seed, "sim_seed": app_run_seed(seed, j.spec.seed), "height_offset_m": dz},
+                    ov))
     return out, suite
 
 

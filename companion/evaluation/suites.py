@@ -88,6 +88,16 @@ def _groups(results: list[dict], key: Callable[[dict], str], radii: list[float])
     return {n: add_intervals(aggregate([r for r in results if key(r) == n], radii)) for n in names}
 
 
+def app_run_seed(table_seed: int, run_seed: int) -> int:
+    """The single ``sim.seed`` an app flight (PX4 SITL) runs on, for run ``run_seed`` of a table flown with
+    ``--seed table_seed``: the in-process runner mixes both (SeedSequence([sim.seed, spec.seed])), the app takes
+    one number. Seed 0 keeps the run's own seed (every PX4 table before 2026-12-02 flew those scenarios); other
+    table seeds give other scenarios (before, ``--seed`` changed nothing on PX4: every seed flew seed 0's runs)."""
+    if table_seed == 0:
+        return run_seed
+    return int(np.random.SeedSequence([table_seed, run_seed]).generate_state(1, np.uint32)[0] >> 1)
+
+
 def suite_table1(cfg: Config, runs: int | None = None) -> Suite:
     n = _per(runs or 60, len(TABLE1_MOTIONS))
     jobs = [Job(cfg, RunSpec(m, seed=k * 1000 + i), {"motion": m})
