@@ -25,6 +25,9 @@ class VerifyConfig(Section):
     size_tolerance: Number = Field(
         0.7, gt=0.0, le=1.0, description="a detector's box may be this factor tighter (or 1/this looser) than "
         "the ring's projection")
+    acquire_cut: bool = Field(
+        False, description="accept a candidate cut by the image border at ACQUIRE (its shape and size cannot be "
+        "checked; during ENGAGE a cut box is always accepted)")
     min_similarity: Number = Field(
         0.0, ge=0.0, le=1.0, description="appearance (hue-saturation histogram of the box, Bhattacharyya "
         "coefficient) against the box the track began with; below it is another object (0 = off)")

@@ -139,3 +139,35 @@ def test_params_from_config() -> None:
     assert p.focal_px == pytest.approx(float(CameraModel.from_config(cfg.camera).K[0, 0]))
     assert p.max_range == 40.0 and p.max_view_angle == pytest.approx(math.radians(60.0))
     assert p.gate_radius == cfg.guidance.gate_radius
+
+
+def test_a_candidate_cut_by_the_image_border_is_none_at_acquire_only() -> None:
+    v = TargetVerifier(_params())
+    bottom = BoundingBox(620.0, 470.0, 34.0, 17.0)  # the PX4 clutter: a flat box on the bottom border (x500 run054)
+    assert "(cut)" in v.check(bottom, True)
+    assert v.check(bottom, False) == ""  # engaged: the gate fills the view as the vehicle nears it
+    for b in (BoundingBox(2.5 + 20, 240, 40, 40), BoundingBox(320, 240 - 218.5, 40, 40),
+              BoundingBox(640 - 22.5, 240, 40, 40)):  # each edge 2.5 px from a border (edge_px 3)
+        assert "(cut)" in v.check(b, True), b
+    assert v.check(BoundingBox(3.5 + 20, 240, 40, 40), True) == ""  # 3.5 px: whole
+    assert TargetVerifier(_params(acquire_cut=True)).check(bottom, True) == ""
+    assert v.rejected == {"cut": 4}
+
+
+def test_no_engagement_begins_on_a_cut_box_but_one_that_becomes_cut_flies_on() -> None:
+    n = load_config().app.acquire_frames
+    bottom = BoundingBox(155.0, 434.7, 156.0, 85.0)  # x500 run071's clutter: 2.8 px from the bottom border
+    e = _eng()
+    _feed(e, [bottom] * (3 * n))
+    assert e.phase is Phase.ACQUIRE
+    e = _eng("app.verify.acquire_cut=true")  # the behaviour before
+    _feed(e, [bottom] * n)
+    assert e.phase is Phase.ENGAGE
+    # A whole gate engaged, then growing until the border cuts it: the engagement flies on, every box used.
+    e = _eng()
+    ds, t = _feed(e, [BoundingBox(320, 300, 40, 40)] * n)
+    assert e.phase is Phase.ENGAGE
+    grow = [BoundingBox(320, 300, s, s) for s in np.linspace(60, 400, 20)]  # bottom edge past 480 from s = 360
+    ds, _ = _feed(e, grow, t)
+    assert all(d.phase in (Phase.ENGAGE, Phase.PASS) for d in ds)
+    assert not any("rejected" in ev for d in ds for ev in d.events)
