@@ -38,20 +38,21 @@ pytestmark = pytest.mark.skipif(_detector_missing() is not None, reason="the shi
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     tmp = tmp_path_factory.mktemp("clutterlog")
-    px4 = SimPX4(load_config([], ["sim.seed=7"]), px4_params=FAST_PX4)
-    px4.start()
-    try:
-        # The tool is under test, not the flight: a rendered flight (real time, real detector) once engaged for only
-        # 4 frames in ~8 flights here (cause not looked into); such a flight is flown again (at most twice more).
-        for k in range(3):
+    # The tool is under test, not the flight: a rendered flight (real time, real detector) once engaged for only
+    # 4 frames in ~8 flights here, once missed the ring by 7 cm; such a flight is flown again (at most twice more),
+    # each on a fresh simulated PX4 (the one that landed is disarming: a second take-off on it was refused).
+    for k in range(3):
+        px4 = SimPX4(load_config([], [f"sim.seed={7 + k}"]), px4_params=FAST_PX4)
+        px4.start()
+        try:
             cfg = make_config(tmp / f"try{k}", px4.url_for_mavsdk, "app.synthetic.render=image",
                               "app.synthetic.motion=linear_slow", f"sim.camera.mount_error.pitch={MOUNT_PITCH_ERROR}")
             _, folder, summary = run_flight(cfg)
-            engaged = int((read_flight(folder)["setpoints"]["state"] == "ENGAGE").sum())
-            if (summary.get("truth") or {}).get("through") == 1 and engaged >= 20:
-                break
-    finally:
-        px4.stop()
+        finally:
+            px4.stop()
+        engaged = int((read_flight(folder)["setpoints"]["state"] == "ENGAGE").sum())
+        if (summary.get("truth") or {}).get("through") == 1 and engaged >= 20:
+            break
     yield Path(folder)
 
 
@@ -100,7 +101,10 @@ def _check_on_gate(folder: Path) -> dict:
     (d,) = per
     assert d["attitude"].startswith("PX4 estimate (the truth source's"), d["attitude"]  # the sim's pose, exact
     assert d["engagements"] == 1 and d["engaged_frames"] >= 20, d
-    assert d["begun_on_wrong"] == 0 and d["engaged_frames_wrong"] == 0 and d["passes_claimed_wrong"] == 0, d
+    # A pass claimed after the vehicle had crossed the gate's plane reads as "on a wrong box" when the ring has just
+    # left the view (its own count; CI under load saw one): not clutter. Before the crossing none may be wrong.
+    assert d["begun_on_wrong"] == 0 and d["engaged_frames_wrong"] == 0, d
+    assert d["passes_claimed_wrong"] == d["passes_claimed_wrong_after_crossing"], d
     return d
 
 
