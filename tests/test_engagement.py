@@ -287,6 +287,23 @@ def test_yawed_vehicle_passes_along_its_los():
     assert (P_NED_ENU @ d.setpoint.R_ned_frd[:, 0])[0] == pytest.approx(1.0, abs=1e-3)  # ENU east
 
 
+def test_a_small_box_lost_with_a_short_time_to_contact_is_no_pass():
+    """PX4 x500 run012: the box grew 50 -> 73 px in 0.2 s (a jump), time-to-contact 0.46 s (< 2 x 0.25 s), then the
+    gate left the top of the image 9 m out: "gate lost while close", a pass claimed, the gate never reached. A ring
+    is lost as it fills the view; a box of 0.11 of the width lost is coasted (it came back 4 frames later)."""
+    r = engaged()
+    sizes = [40.0 + 6.0 * k for k in range(1, 9)]  # 180 px/s: time-to-contact ~0.4 s at 0.14 of the width
+    ds = r.feed([box(s) for s in sizes])
+    assert all(d.phase is Phase.ENGAGE for d in ds)
+    ttc, c = r.eng.close.ttc(), r.eng.close
+    assert c.ttc_threshold < ttc < 2 * c.ttc_threshold  # near by time-to-contact alone (the rule before)
+    assert sizes[-1] / W < r.eng.params.lost_min_size
+    d = r.feed([None])[0]
+    assert d.phase is Phase.ENGAGE and d.control.mode == "coast", d.why
+    d = r.feed([box(sizes[-1])])[0]  # back: the engagement flies on
+    assert d.phase is Phase.ENGAGE and d.control.mode == "pn"
+
+
 def test_a_box_lost_when_nearly_close_starts_the_pass_and_one_lost_far_away_does_not():
     # Far: a 40 px box (0.06 of the width, far below size_threshold / 2), then nothing: coast (target lost later).
     r = engaged()
