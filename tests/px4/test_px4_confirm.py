@@ -10,9 +10,13 @@ after the withdrawal (also after the app has exited). The flight log must say th
 from __future__ import annotations
 
 import re
+import socket
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 from px4kit import finish, flight_folder, start_app, states, wait_state
@@ -23,6 +27,7 @@ from companion.px4sitl.launcher import PX4Sitl, instance_ports
 pytestmark = [pytest.mark.px4, pytest.mark.slow, pytest.mark.timeout(240)]
 
 USER_1 = 31010  # app.confirm.command's default
+GCS_PORT = 18670  # + PX4 instance: the test ground station's own port (PX4 SITL uses 18570 + N for its GCS link)
 OFFBOARD, HOLD = (6, 0), (4, 3)  # PX4 custom main/sub modes
 
 
@@ -35,23 +40,41 @@ class GroundStation:
         self.sysid = px4.instance + 1
         self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{instance_ports(px4.instance)['gcs_local']}",
                                                source_system=255, source_component=190)
+        # PX4 answers only the first address it heard on this link, for its whole life: every ground station of
+        # one PX4 speaks from the same port (a second one on a new port heard nothing from PX4).
+        self.conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.conn.port.bind(("127.0.0.1", GCS_PORT + px4.instance))
+        self.rc_switch: int | None = None  # PWM us of RC channel 7 sent in RC_CHANNELS_OVERRIDE at 10 Hz (None: none)
         self.modes: list[tuple[float, tuple[int, int], bool]] = []  # (t, PX4 custom mode, armed) per heartbeat
         self.acks: list[tuple[float, int, int]] = []  # (t, command, result) addressed to us
+        self.error: BaseException | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as e:  # surfaced by close(): a dead ground station must fail the test, not hang it
+            self.error = e
+            raise
+
+    def _loop(self) -> None:
         from pymavlink import mavutil
 
-        next_hb = 0.0
+        next_hb = next_rc = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_hb:
                 self.conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID,
                                              0, 0, 0)
                 next_hb = now + 1.0
+            sw = self.rc_switch
+            if sw is not None and now >= next_rc:
+                # A transmitter as PX4 sees it over MAVLink: sticks centred, throttle low, the switch on channel 7.
+                self.conn.mav.rc_channels_override_send(self.sysid, 1, 1500, 1500, 1000, 1500, 1500, 1500, sw, 1500)
+                next_rc = now + 0.1
             m = self.conn.recv_match(type=["HEARTBEAT", "COMMAND_ACK"], blocking=True, timeout=0.1)
             if m is None:
                 continue
@@ -93,6 +116,7 @@ class GroundStation:
         self._stop.set()
         self._thread.join(5)
         self.conn.close()
+        assert self.error is None, f"the ground station's thread died: {self.error!r}"
 
 
 def _event(folder: Path, pattern: str, proc, timeout: float) -> re.Match[str]:
@@ -111,28 +135,39 @@ def _event(folder: Path, pattern: str, proc, timeout: float) -> re.Match[str]:
     raise AssertionError(f"no event {pattern!r} within {timeout:.0f} s: {states(folder)}")
 
 
-def test_ground_station_confirms_then_withdraws_on_px4(px4: PX4Sitl, log_dir: Path) -> None:
-    gcs = GroundStation(px4)
+@dataclass
+class Flown:
+    """One confirm-then-withdraw flight: the log, the exit, and PX4's own mode reports around each step."""
+
+    folder: Path
+    rc: int
+    out: str
+    before: list[tuple[int, int]]  # PX4's modes while the candidate waited unconfirmed
+    t_confirm: float
+    t_off: float  # PX4 reported OFFBOARD
+    t_hold: float  # PX4 reported HOLD after the withdrawal
+    after: list[tuple[tuple[int, int], bool]]  # PX4's (mode, armed) after the app exited
+
+
+def _confirm_then_withdraw(px4: PX4Sitl, log_dir: Path, gcs: GroundStation, confirm: Callable[[Path, Any], None],
+                           withdraw: Callable[[], None], *overrides: str) -> Flown:
     proc = start_app(px4, log_dir, "app.engage=confirm", "app.synthetic.motion=stationary",
-                     "app.synthetic.distance=35", "app.takeoff_altitude=6")
+                     "app.synthetic.distance=35", "app.takeoff_altitude=6", *overrides)
     try:
         folder = flight_folder(log_dir, timeout=60)
-        own = _event(folder, r"ground-station confirm: command 31010 to (\d+)/(\d+)", proc, 90)
-        target = (int(own[1]), int(own[2]))
         _event(folder, "candidate awaiting confirmation", proc, 90)
         t_shown = time.monotonic()
         time.sleep(2.0)  # shown, nobody confirms: PX4 keeps holding
         assert "ENGAGE" not in states(folder), states(folder)
         t_confirm = time.monotonic()
-        before = gcs.modes_since(t_shown)  # PX4's reports while the candidate waited
-        assert gcs.command(target, 1.0) == 0  # ACCEPTED
+        before = gcs.modes_since(t_shown)
+        confirm(folder, proc)
         wait_state(folder, "ENGAGE", proc, 15)
         t_off = gcs.wait_mode(OFFBOARD, t_confirm, 15)  # PX4's own report: it flies our setpoints
-        assert gcs.command(target, 0.0) == 0  # the withdraw, ACCEPTED
+        withdraw()
         t_hold = gcs.wait_mode(HOLD, t_off, 15)
         rc, out = finish(proc, timeout=90)
-        # PX4 still reports HOLD, armed, after the app has exited (true of the vehicle, not just the log)
-        t_end = time.monotonic()
+        t_end = time.monotonic()  # PX4 still reports HOLD, armed, after the app has exited
         gcs.wait_mode(HOLD, t_end, 10)
         after = [(m, armed) for t, m, armed in gcs.modes if t >= t_end]
     finally:
@@ -144,15 +179,51 @@ def test_ground_station_confirms_then_withdraws_on_px4(px4: PX4Sitl, log_dir: Pa
     path = f.state_path()
     assert rc == 25 and f.summary["outcome"] == "SAFE_HOLD", (rc, f.summary, out)
     assert "ENGAGE" in path and path[-1] == "SAFE_HOLD", path
-    ev = [str(e) for e in f["events"]["text"]]
-    i_conf = next(i for i, e in enumerate(ev) if "ground-station confirm from 255/190: ACCEPTED" in e)
-    assert any("ground-station withdraw from 255/190: ACCEPTED" in e for e in ev[i_conf:]), ev
-    assert any("withdrawn from the ground station" in e for e in ev[i_conf:]), ev
     assert any("withdrew the confirmation" in str(r["reason"]) for r in f.states), f.states
     # PX4: never OFFBOARD while the candidate waited; OFFBOARD after the confirm, HOLD after the withdraw
     assert before and OFFBOARD not in before, before
     assert t_confirm < t_off < t_hold
     assert f.summary.get("gates_passed", 0) == 0  # withdrawn before the gate
     assert after[0] == (HOLD, True), f"after the app exited PX4 reports {after[0]}, the app said SAFE_HOLD (armed)"
-    print(f"PX4 OFFBOARD {t_off - t_confirm:.2f} s after the confirm was sent, HOLD {t_hold - t_off:.2f} s after "
-          f"OFFBOARD was reported (withdraw sent at once)")
+    print(f"PX4 OFFBOARD {t_off - t_confirm:.2f} s after the confirmation, HOLD {t_hold - t_off:.2f} s after "
+          f"OFFBOARD was reported (withdrawn at once)")
+    return Flown(folder, rc, out, before, t_confirm, t_off, t_hold, after)
+
+
+def test_ground_station_confirms_then_withdraws_on_px4(px4: PX4Sitl, log_dir: Path) -> None:
+    gcs = GroundStation(px4)
+    target: list[tuple[int, int]] = []
+
+    def confirm(folder: Path, proc: Any) -> None:
+        own = _event(folder, r"ground-station confirm: command 31010 to (\d+)/(\d+)", proc, 10)
+        target.append((int(own[1]), int(own[2])))
+        assert gcs.command(target[0], 1.0) == 0  # ACCEPTED
+
+    def withdraw() -> None:
+        assert gcs.command(target[0], 0.0) == 0  # the withdraw, ACCEPTED
+
+    f = read_flight(_confirm_then_withdraw(px4, log_dir, gcs, confirm, withdraw).folder)
+    ev = [str(e) for e in f["events"]["text"]]
+    i_conf = next(i for i, e in enumerate(ev) if "ground-station confirm from 255/190: ACCEPTED" in e)
+    assert any("ground-station withdraw from 255/190: ACCEPTED" in e for e in ev[i_conf:]), ev
+    assert any("withdrawn from the ground station" in e for e in ev[i_conf:]), ev
+
+
+def test_rc_switch_confirms_then_withdraws_on_px4(px4: PX4Sitl, log_dir: Path) -> None:
+    """The engage switch on a transmitter: PX4 gets the channels (here RC_CHANNELS_OVERRIDE from the ground
+    station, as a MAVLink transmitter sends them) and streams RC_CHANNELS on its onboard link (20 Hz in PX4's
+    onboard mode), where the app reads channel 7. No ground-station command (``app.confirm.command=0``)."""
+    gcs = GroundStation(px4)
+    gcs.rc_switch = 1000  # off from the start
+
+    def confirm(folder: Path, proc: Any) -> None:
+        gcs.rc_switch = 2000
+
+    def withdraw() -> None:
+        gcs.rc_switch = 1000
+
+    f = read_flight(_confirm_then_withdraw(px4, log_dir, gcs, confirm, withdraw, "app.confirm.command=0",
+                                           "app.confirm.rc_channel=7").folder)
+    ev = [str(e) for e in f["events"]["text"]]
+    assert any("RC switch" in e for e in ev), ev  # withdrawn by the switch, as the log says
+    assert not any("ground-station" in e for e in ev), ev
