@@ -55,7 +55,6 @@ class FrameInput:
     t_now: float | None = None  # when the frame is processed (its age = t_now - t), None: not known
     imu: ImuReading | None = None  # the newest IMU sample, for the hover-thrust estimate
     confirm: bool | None = None  # the operator's confirmation (app.engage confirm, companion/confirm.py); None: auto
-    autopilot_flies: bool = True  # False: PX4's switch to OFFBOARD is unconfirmed (its thrust may be its own)
 
 
 @fast_init
@@ -110,9 +109,7 @@ class FlightCore:
         d = self.engagement.step(inp.t, inp.box, inp.q_wxyz_ned_frd, inp.baro_rel_alt, inp.events,
                                  accel_frd=inp.accel_frd, t_now=inp.t_now, confirm=inp.confirm)
         hover = hover_input = None
-        if not inp.autopilot_flies:
-            self._hover_u = None  # what PX4 applied is unknown: no hover-thrust sample from this interval
-        elif d.setpoint is not None and d.phase.commanding:
+        if d.setpoint is not None and d.phase.commanding:
             a_up = None
             if inp.imu is not None and self.hover_estimator is not None:
                 # The frame's attitude (capture time) with the newest IMU sample: the tilt moves little between.

@@ -99,33 +99,3 @@ def test_use_hover_thrust_also_moves_the_engagements_pass_and_recovery():
     assert eng.params.f_max == pytest.approx(G * 1.6)  # 1 / 0.625: full thrust is the limit now
     assert eng._recover_setpoint(np.array([1.0, 0, 0, 0])).thrust == pytest.approx(
         min(1.0, 0.625 * cfg.app.recover_thrust_scale))
-
-
-def test_no_hover_sample_while_px4s_switch_to_offboard_is_unconfirmed():
-    """While PX4 may still hold with its own thrust (the switch unconfirmed), the IMU says nothing about ours."""
-    from companion.core import FlightCore, FrameInput, ImuReading
-
-    cfg = load_config()
-    assert cfg.hover.estimate
-    q = np.array([1.0, 0.0, 0.0, 0.0])
-
-    def fly(flies: bool) -> list:
-        core = FlightCore.from_config(cfg, hover_thrust=0.5)
-        out = []
-        for k in range(90):
-            t = k / 30
-            sp = getattr(core.engagement, "_sp", None)
-            u = 0.5 if sp is None else sp.thrust
-            # PX4 holding: its own hover thrust, the specific force is g whatever we command.
-            a_up = G if not flies else G / 0.4 * u  # flown: the vehicle is 20 % lighter than configured
-            imu = ImuReading(t, np.array([0.0, 0.0, -a_up]))
-            box = BoundingBox(320.0, 240.0, 40.0 + 0.3 * k, 40.0 + 0.3 * k, 0.9, t)
-            step = core.step(FrameInput(t, box, q, 10.0, imu=imu, autopilot_flies=flies or k < 10))
-            out.append(step)
-        return out
-
-    held = fly(False)
-    assert held[20].decision.phase.value == "ENGAGE"
-    assert all(s.hover is None and s.hover_input is None for s in held[11:])  # nothing learnt from PX4's thrust
-    flown = fly(True)
-    assert any(s.hover is not None for s in flown)  # the same frames, flown: the estimate moves

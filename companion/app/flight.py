@@ -358,14 +358,11 @@ class FlightApp(Monitors, SafeEnds):
             valid = box is not None and box.is_valid(self.width, self.height)
             self.stats.frames += 1
             log_detection(self.log, frame, box, valid)
-            # While PX4's switch to OFFBOARD is unconfirmed the engagement steers on (PX4 flies the newest setpoint
-            # as soon as it has switched, up to a heartbeat before it says so); no hover-thrust sample meanwhile.
-            switching = self._switching_to_offboard()
+            if self._switching_to_offboard():
+                continue  # perceived and logged (the tracker keeps the gate); PX4 does not fly our setpoints yet
             inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
             if inp is None:
                 raise _Tripped(Abort(Reason.TELEMETRY_INVALID, "no attitude from the autopilot for a frame"))
-            if switching:
-                inp = replace(inp, autopilot_flies=False)
             if self._confirm is not None:  # app.engage confirm: RC switch or GCS command (companion/confirm.py)
                 inp = replace(inp, confirm=self._confirm.step(
                     self.clock(), getattr(self.link, "rc", None), core.engagement.awaiting,
@@ -419,7 +416,6 @@ class FlightApp(Monitors, SafeEnds):
             # real PX4).
             self._offboard_start = asyncio.create_task(self.link.start_offboard(d.setpoint),
                                                        name="app:start_offboard")
-            await asyncio.sleep(0)  # the start marks the switch pending at once: the next frame's setpoint joins it
             self._last_setpoint = self.clock()
             # Logged, but not a latency sample: the mode switch is still under way.
             self._log_control(frame, step, (self._last_setpoint - t_avail) * 1e3)
@@ -434,14 +430,14 @@ class FlightApp(Monitors, SafeEnds):
         return False
 
     def _switching_to_offboard(self) -> bool:
-        """True while PX4 has not yet confirmed OFFBOARD: the engagement steps on and the link sends its setpoints
-        (PX4 flies the newest once it has switched), but the core takes no hover-thrust sample. A refused or
+        """True while PX4 has not yet confirmed OFFBOARD: frames are perceived, but the engagement waits (as
+        before, its next step sees the time that passed), since PX4 does not fly our setpoints yet. A refused or
         unanswered switch raises here (OffboardDenied / CommandTimeout), mapped to its safe state as before."""
         task = self._offboard_start
         if task is None:
             return False
         if not task.done():
-            self._last_setpoint = self.clock()  # MAVSDK resends the newest setpoint meanwhile
+            self._last_setpoint = self.clock()  # the link streams the first setpoint meanwhile
             return True
         self._offboard_start = None
         task.result()
@@ -483,7 +479,6 @@ class FlightApp(Monitors, SafeEnds):
 
     async def _land_normally(self, reason: Reason, why: str, via: State) -> None:
         pilot = self.cfg.app.start == "pilot"  # the pilot took off, the pilot lands
-        await self._cancel_offboard_start()  # an end while PX4's switch is unconfirmed: no stream starts after it
         if via is State.HANDBACK:
             self.sm.go(State.HANDBACK, why)
             self._last_setpoint = math.inf  # we no longer owe setpoints

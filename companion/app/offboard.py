@@ -74,7 +74,7 @@ class OffboardStreaming:
         self._latest_sp: _Sp | None = None
         self._last_fresh = -math.inf
         self._last_sent = -math.inf
-        self._switch_pending = False  # start_offboard under way: PX4 may fly our newest setpoint, unconfirmed
+        self._switch_pending = False  # start_offboard under way: PX4 may fly our first setpoint, unconfirmed
         self._switch_beat = -math.inf  # the event loop's beat meanwhile
         self._offboard_tasks: list[asyncio.Task] = []
         self._guard_stop = threading.Event()
@@ -156,19 +156,8 @@ class OffboardStreaming:
             await asyncio.sleep(0.05)
 
     async def set_setpoint(self, sp: SetpointLike) -> None:
-        """Send a fresh setpoint (the control loop calls this every frame).
-
-        Also while the switch to OFFBOARD is pending: PX4 switches ~0.3 s after the first setpoint but reports it
-        in its 1 Hz heartbeat (0.3-1.3 s after the request on PX4 1.15), and meanwhile it flies whatever MAVSDK
-        resends, the newest setpoint. Held at the first one, the vehicle flew a stale attitude open loop for up
-        to 1.3 s at every engagement (the gate left the view; TARGET_LOST on real PX4)."""
+        """Send a fresh setpoint (the control loop calls this every frame)."""
         checked = self._validated(sp)
-        if self._switch_pending and not self._offboard_active and self._offboard_end_reason is None:
-            self.check_link()
-            self._latest_sp = checked
-            self._last_fresh = time.monotonic()
-            await self._send(checked)
-            return
         if not self._offboard_active:
             why = self._offboard_end_reason or "not started"
             raise OffboardLost(f"setpoint refused: offboard is not active ({why})")
