@@ -97,7 +97,8 @@ def test_summary_measures_a_real_cameras_frame_rate_and_runs_the_detector(sim, t
     # Paced at the file's 30 fps: never faster. Slower only when the machine is: the detector runs on each frame
     # as in flight, so a loaded CI machine measured 18.7 Hz; the rate itself is a benchmark, not a test.
     assert 0.0 < cam["rate_hz"] <= 30.0 * 1.15
-    assert cam["frames"] >= 20 and cam["detector_ms_p50"] > 0
+    # 1 s of sampling: 30 frames idle, 14 seen in a CI run under load (the detector runs on each): a few suffice.
+    assert cam["frames"] >= 5 and cam["detector_ms_p50"] > 0
     boxes = int(cam["detector"].split("gate boxes in ")[1])
     assert boxes >= 0.8 * cam["frames"]  # the detector sees the gate in the frames it was shown
     assert re.search(r"measured \d+(\.\d+)? Hz", shown[0]), shown[0]  # the operator sees the measured rate
