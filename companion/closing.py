@@ -56,9 +56,31 @@ class ClosingSpeedEstimator:
         self.reset()
 
     def reset(self) -> None:
-        self.x: np.ndarray | None = None  # (d, d_dot)
-        self.P = np.zeros((2, 2))
+        # The state in floats: (d, d_dot) and the covariance's (p00, p01, p11). Arrays per frame cost more than
+        # this filter's arithmetic; ``x`` and ``P`` give them as arrays to whoever reads them.
+        self._x: tuple[float, float] | None = None
+        self._P: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.t: float | None = None
+
+    @property
+    def x(self) -> np.ndarray | None:
+        """The state (d, d_dot) as an array (a copy), None before the first range."""
+        return None if self._x is None else np.array(self._x)
+
+    @x.setter
+    def x(self, value: np.ndarray | None) -> None:
+        self._x = None if value is None else (float(value[0]), float(value[1]))
+
+    @property
+    def state(self) -> tuple[float, float] | None:
+        """(d, d_dot) as floats, None before the first range."""
+        return self._x
+
+    @property
+    def P(self) -> np.ndarray:
+        """The state covariance, 2x2 (a copy)."""
+        p00, p01, p11 = self._P
+        return np.array([[p00, p01], [p01, p11]])
 
     def speed(self, lambda_dot: float = 0.0, latency: float = 0.0) -> float:
         """The relative speed to use in the PN law, m/s, given the current LOS rate (rad/s).
@@ -68,19 +90,19 @@ class ClosingSpeedEstimator:
         ``v_rel_bar``, and at most ``d / (lag_margin * (loop_lag + latency))``: PN's loop gain grows as
         ``N / t_go`` while the vehicle's lag (and the frame's age ``latency``, s) stays, so near the gate the gain
         is capped where the loop would ring."""
-        if self.x is None:
+        if self._x is None:
             return self.p.v_rel_bar
-        x0, x1 = self.x.tolist()  # the same floats as float() of each element, in one call (every frame)
+        x0, x1 = self._x
         d = max(x0, 0.0)
         v_rel = math.hypot(x1, d * lambda_dot)
-        v = self.p.margin * v_rel + math.sqrt(max(self.P.item(1, 1), 0.0))
+        v = self.p.margin * v_rel + math.sqrt(max(self._P[2], 0.0))
         if self.p.loop_lag > 0.0:
             v = min(v, d / (self.p.lag_margin * (self.p.loop_lag + max(latency, 0.0))))
         return min(self.p.v_rel_bar, max(self.p.v_min, v))
 
     @property
     def range(self) -> float | None:
-        return None if self.x is None else float(self.x[0])
+        return None if self._x is None else self._x[0]
 
     def range_from_box(self, box: BoundingBox) -> float | None:
         """Range to a ring of the configured radius from its box, or None (cut by the border, degenerate).
@@ -104,15 +126,14 @@ class ClosingSpeedEstimator:
         """Advance to frame time ``t`` with this frame's box (or None); ``range_accel`` is the range
         acceleration the vehicle's measured acceleration explains (m/s^2), None without an IMU."""
         p = self.p
-        # Scalar 2-state Kalman filter: numpy's per-call overhead on 2x2 arrays dominated this 30 Hz path. The
-        # prediction stays in floats until the measurement update: one pair of arrays a frame, not two.
+        # Scalar 2-state Kalman filter: numpy's per-call overhead on 2x2 arrays dominated this 30 Hz path.
         predicted = False
-        if self.x is not None and self.t is not None and t > self.t:
+        if self._x is not None and self.t is not None and t > self.t:
             dt = t - self.t
             imu = range_accel is not None and math.isfinite(range_accel)
             u = range_accel if imu else 0.0
-            x0, x1 = self.x.tolist()
-            (p00, p01), (_, p11) = self.P.tolist()
+            x0, x1 = self._x
+            p00, p01, p11 = self._P
             x0, x1 = x0 + dt * x1 + 0.5 * dt * dt * u, x1 + dt * u  # x = F x + B u, F = [[1, dt], [0, 1]]
             q = (p.accel_noise_imu if imu else p.accel_noise) ** 2
             # P = F P F^T + Q (white-acceleration Q)
@@ -124,24 +145,23 @@ class ClosingSpeedEstimator:
         d = self.range_from_box(box) if box is not None else None
         if d is None:
             if predicted:
-                self.x = np.array([x0, x1])
-                self.P = np.array([[p00, p01], [p01, p11]])
+                self._x, self._P = (x0, x1), (p00, p01, p11)
             return
         size = max(box.w, box.h)
         sigma = d * (p.pixel_noise * math.sqrt(2.0) / size + p.size_noise)
-        if self.x is None:
-            self.x = np.array([d, -p.v_rel_bar])
-            self.P = np.diag([sigma * sigma, (0.5 * p.v_rel_bar) ** 2])
+        if self._x is None:
+            self._x = (d, -p.v_rel_bar)
+            self._P = (sigma * sigma, 0.0, (0.5 * p.v_rel_bar) ** 2)
             return
         if not predicted:
-            x0, x1 = self.x.tolist()
-            (p00, p01), (_, p11) = self.P.tolist()
+            x0, x1 = self._x
+            p00, p01, p11 = self._P
         s_ = p00 + sigma * sigma
         k0, k1 = p00 / s_, p01 / s_
         r = d - x0
         # x += K r;  P -= K P[0, :] (symmetric by construction)
-        self.x = np.array([x0 + k0 * r, x1 + k1 * r])
-        self.P = np.array([[p00 - k0 * p00, p01 - k0 * p01], [p01 - k0 * p01, p11 - k1 * p01]])
+        self._x = (x0 + k0 * r, x1 + k1 * r)
+        self._P = (p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01)
 
 
 def _angle(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:

@@ -219,8 +219,8 @@ class PNController:
         self._t_last = t if math.isfinite(t) else self._t_last
         if rejected is None:
             assert box is not None
-            l_ned = R_ned_frd @ self.camera.ray_body(box.cx, box.cy)
-            l_enu = P_NED_ENU @ l_ned
+            l_ned = R_ned_frd.dot(self.camera.ray_body(box.cx, box.cy))
+            l_enu = P_NED_ENU.dot(l_ned)
             rejected = self._jump(t, l_enu)
             if rejected is None:
                 self._closing_speed(t, box, R_ned_frd, accel_frd)
@@ -239,7 +239,7 @@ class PNController:
         ax, ay = float(accel_frd[0]), float(accel_frd[1])
         if not (math.isfinite(ax) and math.isfinite(ay)):
             return
-        d = P_NED_ENU @ (R_ned_frd[:, 0] * ax + R_ned_frd[:, 1] * ay)
+        d = P_NED_ENU.dot(R_ned_frd[:, 0] * ax + R_ned_frd[:, 1] * ay)
         if self._drag is None or self._t_drag is None or not (0.0 < t - self._t_drag <= self.p.max_dt):
             self._drag = d
         else:
@@ -256,8 +256,8 @@ class PNController:
         d = est.range
         if accel_frd is not None and self._l_prev is not None and d is not None:
             # Range acceleration explained by our own motion: -a . l + d lambda_dot^2 (gate assumed unaccelerated).
-            a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float) + np.array([0.0, 0.0, guidance.G])
-            u = -float((P_NED_ENU @ a_ned) @ self._l_prev) + d * self._lam * self._lam
+            a_ned = R_ned_frd.dot(np.asarray(accel_frd, dtype=float)) + np.array([0.0, 0.0, guidance.G])
+            u = -float(P_NED_ENU.dot(a_ned).dot(self._l_prev)) + d * self._lam * self._lam
         est.update(t, box, u)
 
     # -- internals -------------------------------------------------------------------------
@@ -313,9 +313,9 @@ class PNController:
         if d is None or d <= 0.5 or t_now is None or not self._own:
             return lam, n
         dv = self._own.dv(t - self.p.own_delay, t_now - self.p.own_delay)  # a command acts own_delay later
-        dv = dv - float(dv @ l_f) * l_f
+        dv = dv - float(dv.dot(l_f)) * l_f
         w = lam * n - dv / d
-        lp = float(np.linalg.norm(w))
+        lp = math.sqrt(w.dot(w))
         return lp, (w / lp if lp > 0.0 else np.zeros(3))
 
     def _predict_state(self, t: float, l_f: np.ndarray, lam: float,
@@ -328,9 +328,9 @@ class PNController:
         frame no longer says where the ring's centre is)."""
         est = self._closing
         t_now = self._t_now
-        if est is None or est.x is None or t_now is None or not (t_now > t):
+        if est is None or est.state is None or t_now is None or not (t_now > t):
             return l_f, lam, n
-        d, d_dot = float(est.x[0]), float(est.x[1])
+        d, d_dot = est.state
         if d <= 0.5:
             return l_f, lam, n
         tau = t_now - t
@@ -341,13 +341,13 @@ class PNController:
             dv, dp = self._own.motion(t0, t1)
             r = r - dp
             v = v - dv
-        d2 = float(np.linalg.norm(r))
-        if not (d2 > 1e-6) or float(r @ l_f) <= 0.0:
+        d2 = math.sqrt(r.dot(r))
+        if not (d2 > 1e-6) or float(r.dot(l_f)) <= 0.0:
             return l_f, lam, n  # predicted past the gate: the frame says nothing about now
         l2 = r / d2
         d2 = max(d2, self.p.gate_radius, 0.5)
-        w = (v - float(v @ l2) * l2) / d2
-        lp = float(np.linalg.norm(w))
+        w = (v - float(v.dot(l2)) * l2) / d2
+        lp = math.sqrt(w.dot(w))
         return l2, lp, (w / lp if lp > 0.0 else np.zeros(3))
 
     def _ring_angle(self, box: BoundingBox | None) -> float:
@@ -405,7 +405,7 @@ class PNController:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
             # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
             # accelerometer misses drag along the thrust axis, so the vertical normal part is not trusted.)
-            a_n = a_n - (self.p.drag_compensation * float(self._drag @ y_pn)) * y_pn
+            a_n = a_n - (self.p.drag_compensation * float(self._drag.dot(y_pn))) * y_pn
         sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         if self.p.delay_compensation:
@@ -413,10 +413,10 @@ class PNController:
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
             a_net = sol.demand_scale * a_n
             if y_pn is not None:
-                a_net = a_net + float(self._drag @ y_pn) * y_pn
+                a_net = a_net + float(self._drag.dot(y_pn)) * y_pn
             self._note_command(a_net)
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", P_NED_ENU @ l_f, lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
+        return ControlOutput(t, sp, "pn", P_NED_ENU.dot(l_f), lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
                              v_rel)
 
     def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray | tuple[float, float, float],
@@ -446,9 +446,9 @@ class PNController:
         speed less the frame's age (the frame is that much nearer now)."""
         fc = self.p.rate_cutoff_hz
         est = self._closing
-        if self.p.rate_cutoff_min <= 0.0 or est is None or est.x is None:
+        if self.p.rate_cutoff_min <= 0.0 or est is None or est.state is None:
             return fc
-        d, d_dot = est.x.tolist()
+        d, d_dot = est.state
         if d_dot >= -0.5:  # not closing: no time to go
             return fc
         t_go = d / -d_dot - self._latency
@@ -466,7 +466,7 @@ class PNController:
         # (the app's safety layer decides when "lost" becomes an abort).
         sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._y_ref(self._l_prev, R_ned_frd))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "coast", P_NED_ENU @ self._l_prev, 0.0, zero, sol.demand_scale, sol.f_th, rejected)
+        return ControlOutput(t, sp, "coast", P_NED_ENU.dot(self._l_prev), 0.0, zero, sol.demand_scale, sol.f_th, rejected)
 
     @staticmethod
     def _y_ref(l_enu: np.ndarray, R_ned_frd: np.ndarray) -> np.ndarray | None:
@@ -478,7 +478,7 @@ class PNController:
     @staticmethod
     def _body_y_enu(R_ned_frd: np.ndarray) -> np.ndarray:
         # FLU y = -FRD y; re-expressed in ENU. Only used to orient the PN frame at a vertical LOS.
-        return -(P_NED_ENU @ R_ned_frd[:, 1])
+        return -P_NED_ENU.dot(R_ned_frd[:, 1])
 
 
 def _y_pn(l_enu: np.ndarray) -> np.ndarray | None:

@@ -41,12 +41,12 @@ def frd_to_flu(v: np.ndarray) -> np.ndarray:
 
 def R_ned_frd_from_enu_flu(R_enu_flu: np.ndarray) -> np.ndarray:
     """Body-to-world rotation, re-expressed from ENU/FLU to NED/FRD."""
-    return P_NED_ENU @ R_enu_flu @ F_FRD_FLU
+    return P_NED_ENU.dot(R_enu_flu).dot(F_FRD_FLU)
 
 
 def R_enu_flu_from_ned_frd(R_ned_frd: np.ndarray) -> np.ndarray:
     """Body-to-world rotation, re-expressed from NED/FRD to ENU/FLU."""
-    return P_NED_ENU @ R_ned_frd @ F_FRD_FLU
+    return P_NED_ENU.dot(R_ned_frd).dot(F_FRD_FLU)
 
 
 def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:

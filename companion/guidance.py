@@ -551,7 +551,7 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
         return _fallback(R_W_PN, u, p)
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
     f = min(p.f_max, max(f, p.f_min))  # rounding only: (a) gives |t| >= t_z >= f_min
-    return ThrustAttitude(f, phi, theta, R_W_PN @ _R_y_R_x(phi, theta), s, False)
+    return ThrustAttitude(f, phi, theta, R_W_PN.dot(_R_y_R_x(phi, theta)), s, False)
 
 
 def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> ThrustAttitude:
@@ -566,7 +566,7 @@ def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidancePara
     phi = max(alpha - p.max_tilt, min(alpha + p.max_tilt, p.uptilt))  # optical axis at phi - uptilt from the LOS
     up = u[0] * math.sin(phi) + u[2] * math.cos(phi)  # cos(tilt) > 0
     f = min(p.f_max, max(p.f_min, G / up if up > _EPS else p.f_min))
-    return ThrustAttitude(f, phi, 0.0, R_W_PN @ _R_y_R_x(phi, 0.0), 0.0, True)
+    return ThrustAttitude(f, phi, 0.0, R_W_PN.dot(_R_y_R_x(phi, 0.0)), 0.0, True)
 
 
 @fast_init
@@ -651,14 +651,14 @@ def _drag_pass(l: np.ndarray, t: np.ndarray, f_min: float, f_max: float, max_til
     th = math.hypot(float(t[0]), float(t[1]))
     k = min(1.0, tz * math.tan(max_tilt) / th) if th > _EPS else 1.0
     t = np.array([t[0] * k, t[1] * k, tz])
-    n = float(np.linalg.norm(t))
+    n = math.sqrt(t.dot(t))
     f = min(f_max, max(f_min, n))
     z = t / n
-    x = l - float(l @ z) * z
-    nx = float(np.linalg.norm(x))
+    x = l - float(l.dot(z)) * z
+    nx = math.sqrt(x.dot(x))
     if nx < 1e-6:  # LOS along the thrust axis (not a pass geometry): any body x normal to z
         x = pn_frame(z, y_ref)[:, 1]
-        nx = float(np.linalg.norm(x))
+        nx = math.sqrt(x.dot(x))
     x = x / nx
     R = np.column_stack((x, np.cross(z, x), z))
     return ThrustAttitude(f, 0.0, 0.0, R, 0.0, False)

@@ -156,7 +156,7 @@ class SafetyLimits:
         t_mean = float(_sum(t) / n)
         h_mean = _sum(h) / n
         t = t - t_mean
-        rate = float(t @ (h - h_mean)) / float(t @ t)
+        rate = float(t.dot(h - h_mean)) / float(t.dot(t))
         self.climb_rate = rate
         now_fit = float(h_mean) + rate * (now - t_mean)  # the fitted altitude now: less noisy than one sample
         if arrest is not None:

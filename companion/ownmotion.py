@@ -27,7 +27,9 @@ class OwnMotion:
         self.reset()
 
     def reset(self) -> None:
-        self._hist: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t issued, commanded accel, modelled accel)
+        # (t issued, commanded accel, modelled accel), vectors as float triples: this runs every frame and the
+        # element-wise math below is the same in floats as in arrays, bit for bit.
+        self._hist: list[tuple[float, tuple[float, float, float], tuple[float, float, float]]] = []
         self._t: list[float] = []  # the times of _hist, for bisection
 
     def __bool__(self) -> bool:
@@ -38,18 +40,18 @@ class OwnMotion:
         prev = self._hist[-1] if self._hist else None
         tau = self.lag
         if prev is None:
-            eff = np.zeros(3)
+            eff = (0.0, 0.0, 0.0)
         else:
             t0, a0, e0 = prev
             if tau > 0.0:
-                # a0 + (e0 - a0) exp(-(t - t0) / tau), element by element in floats: the same values as the array
-                # expression without three temporary arrays (once per frame).
+                # a0 + (e0 - a0) exp(-(t - t0) / tau)
                 c = math.exp(-(t - t0) / tau)
-                (ax, ay, az), (ex, ey, ez) = a0.tolist(), e0.tolist()
-                eff = np.array([ax + (ex - ax) * c, ay + (ey - ay) * c, az + (ez - az) * c])
+                (ax, ay, az), (ex, ey, ez) = a0, e0
+                eff = (ax + (ex - ax) * c, ay + (ey - ay) * c, az + (ez - az) * c)
             else:
-                eff = a0.copy()
-        self._hist.append((t, np.array(a, dtype=float), eff))
+                eff = a0
+        ax, ay, az = np.asarray(a, dtype=float).tolist()
+        self._hist.append((t, (ax, ay, az), eff))
         self._t.append(t)
         horizon = t - HISTORY_S
         while len(self._hist) > 2 and self._hist[1][0] < horizon:
@@ -58,19 +60,26 @@ class OwnMotion:
 
     def dv(self, t0: float, t1: float) -> np.ndarray:
         """The velocity the (modelled) acceleration added between t0 and t1, without drag."""
-        dv = np.zeros(3)
+        vx = vy = vz = 0.0
         tau = self.lag
         hist = self._hist
-        for i, (ti, ai, ei) in enumerate(hist):
+        for i, (ti, (ax, ay, az), (ex, ey, ez)) in enumerate(hist):
             tn = hist[i + 1][0] if i + 1 < len(hist) else t1
             s0, s1 = max(t0, ti), min(t1, tn)
             if s1 <= s0:
                 continue
+            h = s1 - s0
             if tau > 0.0:
-                dv += ai * (s1 - s0) + (ei - ai) * tau * (math.exp(-(s0 - ti) / tau) - math.exp(-(s1 - ti) / tau))
+                # ai h + (ei - ai) tau e, in the order of the array expression it replaced
+                e = math.exp(-(s0 - ti) / tau) - math.exp(-(s1 - ti) / tau)
+                vx += ax * h + (ex - ax) * tau * e
+                vy += ay * h + (ey - ay) * tau * e
+                vz += az * h + (ez - az) * tau * e
             else:
-                dv += ai * (s1 - s0)
-        return dv
+                vx += ax * h
+                vy += ay * h
+                vz += az * h
+        return np.array([vx, vy, vz])
 
     def motion(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
         """The velocity and displacement added between t0 and t1, with drag taking the velocity back."""
@@ -103,7 +112,7 @@ class OwnMotion:
                 c = math.exp(-(s0 - ti) / tau)
             else:
                 c = 0.0
-            (ax, ay, az), (ex, ey, ez) = ai.tolist(), ei.tolist()
+            (ax, ay, az), (ex, ey, ez) = ai, ei
             cx, cy, cz = (ex - ax) * c, (ey - ay) * c, (ez - az) * c
             px += vx * f1 + ax * f2 + cx * h
             py += vy * f1 + ay * f2 + cy * h

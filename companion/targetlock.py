@@ -105,7 +105,7 @@ class TargetLock:
         if max(ratio, 1.0 / max(ratio, 1e-9)) > bound:
             return self._reject(f"box {size:.0f} px vs {s_ref:.0f} px {dt:.2f} s before (an approach explains "
                                 f"x{bound:.2f} at most)")
-        ang = math.acos(max(-1.0, min(1.0, float(l_ref @ los))))
+        ang = math.acos(max(-1.0, min(1.0, float(l_ref.dot(los)))))
         a_max = self.angle_bound(s_ref, dt)
         if ang > a_max:
             return self._reject(f"line of sight {math.degrees(ang):.0f} deg from the gate's {dt:.2f} s before "

@@ -67,7 +67,7 @@ class CameraModel:
 
     def ray_body(self, u: float, v: float) -> np.ndarray:
         """Unit ray in body FRD through pixel (u, v)."""
-        return self.R_body_cam @ self.ray_cam(u, v)
+        return self.R_body_cam.dot(self.ray_cam(u, v))
 
     def project_body(self, v_body: np.ndarray) -> tuple[float, float] | None:
         """Pixel of a body-frame direction or point (distortion applied); None if behind the camera."""
@@ -83,7 +83,7 @@ class CameraModel:
 
 def los_world(model: CameraModel, u: float, v: float, R_ned_frd: np.ndarray) -> np.ndarray:
     """Unit LOS in world NED through pixel (u, v), given the attitude at the frame's capture time."""
-    return R_ned_frd @ model.ray_body(u, v)
+    return R_ned_frd.dot(model.ray_body(u, v))
 
 
 class LosFilter:
@@ -189,7 +189,7 @@ class LosKalman:
         p11 += q * dt
         s = p00 + sigma * sigma
         nu = z - lp
-        nis = math.sqrt(float(nu @ nu) / s)
+        nis = math.sqrt(float(nu.dot(nu)) / s)
         self.last_nis = nis
         self.t = t
         if nis > self.p.gate:
@@ -206,8 +206,8 @@ class LosKalman:
         return True
 
     def _set(self, l: np.ndarray, rate: np.ndarray, P: np.ndarray) -> None:  # noqa: E741
-        n = math.sqrt(float(l @ l))
+        n = math.sqrt(float(l.dot(l)))
         self.l = l / n if n > 1e-9 else self.l
         assert self.l is not None
-        self.rate = rate - float(rate @ self.l) * self.l
+        self.rate = rate - float(rate.dot(self.l)) * self.l
         self.P = P
