@@ -298,7 +298,7 @@ class PNController:
             return None
         return f"LOS jump ({math.degrees(angle):.1f} deg in {dt * 1e3:.0f} ms)"
 
-    def _note_command(self, a: np.ndarray) -> None:
+    def _note_command(self, a: tuple[float, float, float]) -> None:
         """Remember the acceleration commanded now (world ENU, normal to the LOS) for the delay compensation."""
         t = self._t_now if self._t_now is not None else self._t_last
         if t is not None:
@@ -334,21 +334,29 @@ class PNController:
         if d <= 0.5:
             return l_f, lam, n
         tau = t_now - t
-        v = d_dot * l_f + (d * lam) * n
-        r = d * l_f + v * tau
+        # Element-wise parts in floats (the same operations as the array expressions, bit for bit); arrays only
+        # where numpy's dot products must give their own rounding.
+        (lx, ly, lz), (nx, ny, nz) = l_f.tolist(), n.tolist()
+        dl = d * lam
+        vx, vy, vz = d_dot * lx + dl * nx, d_dot * ly + dl * ny, d_dot * lz + dl * nz  # v = d_dot l + d lam n
+        rx, ry, rz = d * lx + vx * tau, d * ly + vy * tau, d * lz + vz * tau  # r = d l + v tau
         if self.p.delay_compensation and self._own:
             t0, t1 = t - self.p.own_delay, t_now - self.p.own_delay  # a command acts own_delay after it is given
-            dv, dp = self._own.motion(t0, t1)
-            r = r - dp
-            v = v - dv
+            (dvx, dvy, dvz), (dpx, dpy, dpz) = self._own.motion_xyz(t0, t1)
+            rx, ry, rz = rx - dpx, ry - dpy, rz - dpz
+            vx, vy, vz = vx - dvx, vy - dvy, vz - dvz
+        r = np.array([rx, ry, rz])
         d2 = math.sqrt(r.dot(r))
         if not (d2 > 1e-6) or float(r.dot(l_f)) <= 0.0:
             return l_f, lam, n  # predicted past the gate: the frame says nothing about now
-        l2 = r / d2
+        l2x, l2y, l2z = rx / d2, ry / d2, rz / d2
+        l2 = np.array([l2x, l2y, l2z])
         d2 = max(d2, self.p.gate_radius, 0.5)
-        w = (v - float(v.dot(l2)) * l2) / d2
+        c = float(np.array([vx, vy, vz]).dot(l2))
+        wx, wy, wz = (vx - c * l2x) / d2, (vy - c * l2y) / d2, (vz - c * l2z) / d2  # w = (v - (v . l2) l2) / d2
+        w = np.array([wx, wy, wz])
         lp = math.sqrt(w.dot(w))
-        return l2, lp, (w / lp if lp > 0.0 else np.zeros(3))
+        return l2, lp, (np.array([wx / lp, wy / lp, wz / lp]) if lp > 0.0 else np.zeros(3))
 
     def _ring_angle(self, box: BoundingBox | None) -> float:
         """The ring's angular radius (rad): the larger of the range estimate's (``atan(r / d)``; it carries on
@@ -399,22 +407,30 @@ class PNController:
         gp = self.p.guidance
         v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
         a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, v_rel)
-        # The PN frame's y axis of the filtered LOS: only the drag terms below use it (computed once, when needed).
+        # The PN frame's y axis of the filtered LOS and the measured drag along it: only the drag terms below use
+        # them (computed once, when there is a drag estimate). Element-wise math in floats from here (the same
+        # operations as the array expressions, bit for bit).
         y_pn = _y_pn(l_f) if self._drag is not None else None
+        drag_y = float(self._drag.dot(y_pn)) if self._drag is not None and y_pn is not None else 0.0
         if y_pn is not None and self.p.drag_compensation > 0.0:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
             # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
             # accelerometer misses drag along the thrust axis, so the vertical normal part is not trusted.)
-            a_n = a_n - (self.p.drag_compensation * float(self._drag.dot(y_pn))) * y_pn
+            c = self.p.drag_compensation * drag_y
+            (ax, ay, az), (yx, yy, yz) = a_n.tolist(), y_pn.tolist()
+            a_n = np.array([ax - c * yx, ay - c * yy, az - c * yz])  # a_n - c y_pn
         sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
         self._l_prev, self._t_prev = l_f.copy(), t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
-            a_net = sol.demand_scale * a_n
+            s = sol.demand_scale
+            ax, ay, az = a_n.tolist()
+            nx, ny, nz = s * ax, s * ay, s * az
             if y_pn is not None:
-                a_net = a_net + float(self._drag.dot(y_pn)) * y_pn
-            self._note_command(a_net)
+                yx, yy, yz = y_pn.tolist()
+                nx, ny, nz = nx + drag_y * yx, ny + drag_y * yy, nz + drag_y * yz
+            self._note_command((nx, ny, nz))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
         return ControlOutput(t, sp, "pn", P_NED_ENU.dot(l_f), lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
                              v_rel)

@@ -35,7 +35,7 @@ class OwnMotion:
     def __bool__(self) -> bool:
         return bool(self._hist)
 
-    def note(self, t: float, a: np.ndarray) -> None:
+    def note(self, t: float, a: np.ndarray | tuple[float, float, float]) -> None:
         """The acceleration commanded at ``t``."""
         prev = self._hist[-1] if self._hist else None
         tau = self.lag
@@ -50,7 +50,7 @@ class OwnMotion:
                 eff = (ax + (ex - ax) * c, ay + (ey - ay) * c, az + (ez - az) * c)
             else:
                 eff = a0
-        ax, ay, az = np.asarray(a, dtype=float).tolist()
+        ax, ay, az = a.tolist() if isinstance(a, np.ndarray) else (float(a[0]), float(a[1]), float(a[2]))
         self._hist.append((t, (ax, ay, az), eff))
         self._t.append(t)
         horizon = t - HISTORY_S
@@ -83,6 +83,11 @@ class OwnMotion:
 
     def motion(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
         """The velocity and displacement added between t0 and t1, with drag taking the velocity back."""
+        v, p = self.motion_xyz(t0, t1)
+        return np.array(v), np.array(p)
+
+    def motion_xyz(self, t0: float, t1: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """:meth:`motion` as float triples (the controller's per-frame prediction: no arrays)."""
         k, tau = self.drag_rate, self.lag
         vx = vy = vz = px = py = pz = 0.0
         hist = self._hist
@@ -118,4 +123,4 @@ class OwnMotion:
             py += vy * f1 + ay * f2 + cy * h
             pz += vz * f1 + az * f2 + cz * h
             vx, vy, vz = vx * e_k + ax * f1 + cx * g, vy * e_k + ay * f1 + cy * g, vz * e_k + az * f1 + cz * g
-        return np.array([vx, vy, vz]), np.array([px, py, pz])
+        return (vx, vy, vz), (px, py, pz)
