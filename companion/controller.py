@@ -32,6 +32,9 @@ from perception.fastinit import fast_init
 from perception.los import CameraModel, LosFilter, LosKalman, LosKalmanParams
 from perception.types import BoundingBox
 
+# A 3-vector: an array, or three floats on the per-frame path.
+Vec3 = np.ndarray | tuple[float, float, float]
+
 if TYPE_CHECKING:
     from companion.config import Config
 
@@ -304,7 +307,8 @@ class PNController:
         if t is not None:
             self._own.note(t, a)
 
-    def _predict_rate(self, t: float, l_f: np.ndarray, lam: float, n: np.ndarray) -> tuple[float, np.ndarray]:
+    def _predict_rate(self, t: float, l_f: np.ndarray, lam: float,
+                      n: Vec3) -> tuple[float, Vec3]:
         """The LOS rate now, not at capture: ``dl/dt = v_rel_normal / d``, so our own velocity change since the
         capture, ``dv``, moves it by ``-dv_normal / d`` (d from the closing-speed range). The gate's own
         acceleration stays unknown."""
@@ -314,12 +318,12 @@ class PNController:
             return lam, n
         dv = self._own.dv(t - self.p.own_delay, t_now - self.p.own_delay)  # a command acts own_delay later
         dv = dv - float(dv.dot(l_f)) * l_f
-        w = lam * n - dv / d
+        w = lam * np.asarray(n, dtype=float) - dv / d
         lp = math.sqrt(w.dot(w))
         return lp, (w / lp if lp > 0.0 else np.zeros(3))
 
     def _predict_state(self, t: float, l_f: np.ndarray, lam: float,
-                       n: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+                       n: Vec3) -> tuple[np.ndarray, float, Vec3]:
         """The LOS and LOS rate now, not at capture: the relative position ``r = d l`` and velocity
         ``v = d_dot l + d lambda_dot n`` (range and range rate from the closing-speed filter) propagated through
         the frame's age at constant relative velocity, less our own velocity change (delay_compensation). For an
@@ -336,7 +340,7 @@ class PNController:
         tau = t_now - t
         # Element-wise parts in floats (the same operations as the array expressions, bit for bit); arrays only
         # where numpy's dot products must give their own rounding.
-        (lx, ly, lz), (nx, ny, nz) = l_f.tolist(), n.tolist()
+        (lx, ly, lz), (nx, ny, nz) = l_f.tolist(), (n.tolist() if isinstance(n, np.ndarray) else n)
         dl = d * lam
         vx, vy, vz = d_dot * lx + dl * nx, d_dot * ly + dl * ny, d_dot * lz + dl * nz  # v = d_dot l + d lam n
         rx, ry, rz = d * lx + vx * tau, d * ly + vy * tau, d * lz + vz * tau  # r = d l + v tau
@@ -356,7 +360,7 @@ class PNController:
         wx, wy, wz = (vx - c * l2x) / d2, (vy - c * l2y) / d2, (vz - c * l2z) / d2  # w = (v - (v . l2) l2) / d2
         w = np.array([wx, wy, wz])
         lp = math.sqrt(w.dot(w))
-        return l2, lp, (np.array([wx / lp, wy / lp, wz / lp]) if lp > 0.0 else np.zeros(3))
+        return l2, lp, ((wx / lp, wy / lp, wz / lp) if lp > 0.0 else (0.0, 0.0, 0.0))
 
     def _ring_angle(self, box: BoundingBox | None) -> float:
         """The ring's angular radius (rad): the larger of the range estimate's (``atan(r / d)``; it carries on
@@ -436,7 +440,7 @@ class PNController:
                              v_rel)
 
     def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray | tuple[float, float, float],
-                     dt: float) -> tuple[float, np.ndarray]:
+                     dt: float) -> tuple[float, tuple[float, float, float]]:
         """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies
         pixel noise, and k_PN v_rel_bar (~30 m/s) turns it into thrust jitter. Kept normal to the LOS."""
         wx, wy, wz = w.tolist() if isinstance(w, np.ndarray) else w  # scalar math: this runs every frame
@@ -452,7 +456,7 @@ class PNController:
                 wx, wy, wz = wx - d * lx, wy - d * ly, wz - d * lz
                 self._w = (wx, wy, wz)
         lam = math.sqrt(wx * wx + wy * wy + wz * wz)
-        return lam, (np.array([wx / lam, wy / lam, wz / lam]) if lam > 0.0 else np.zeros(3))
+        return lam, ((wx / lam, wy / lam, wz / lam) if lam > 0.0 else (0.0, 0.0, 0.0))
 
     def _rate_cutoff(self) -> float:
         """The LOS-rate low-pass's cut-off now (Hz). Scheduled on the time to go (when rate_cutoff_min > 0): PN's
@@ -482,7 +486,8 @@ class PNController:
         # (the app's safety layer decides when "lost" becomes an abort).
         sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._y_ref(self._l_prev, R_ned_frd))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "coast", P_NED_ENU.dot(self._l_prev), 0.0, zero, sol.demand_scale, sol.f_th, rejected)
+        return ControlOutput(t, sp, "coast", P_NED_ENU.dot(self._l_prev), 0.0, zero, sol.demand_scale, sol.f_th,
+                             rejected)
 
     @staticmethod
     def _y_ref(l_enu: np.ndarray, R_ned_frd: np.ndarray) -> np.ndarray | None:
@@ -495,6 +500,8 @@ class PNController:
     def _body_y_enu(R_ned_frd: np.ndarray) -> np.ndarray:
         # FLU y = -FRD y; re-expressed in ENU. Only used to orient the PN frame at a vertical LOS.
         return -P_NED_ENU.dot(R_ned_frd[:, 1])
+
+
 
 
 def _y_pn(l_enu: np.ndarray) -> np.ndarray | None:

@@ -175,9 +175,12 @@ def with_gamma_bar(p: GuidanceParams, gamma_bar: float) -> GuidanceParams:
     return q
 
 
-def pn_demand(lambda_dot: float, n: np.ndarray, k_pn: float, v_rel_bar: float) -> np.ndarray:
-    """eq:meth_pn_guidance_law: ``a_n = k_PN * v_rel_bar * lambda_dot * n``."""
-    return (k_pn * v_rel_bar * lambda_dot) * n
+def pn_demand(lambda_dot: float, n: np.ndarray | tuple[float, float, float], k_pn: float,
+              v_rel_bar: float) -> np.ndarray:
+    """eq:meth_pn_guidance_law: ``a_n = k_PN * v_rel_bar * lambda_dot * n`` (``n`` an array or three floats)."""
+    g = k_pn * v_rel_bar * lambda_dot
+    nx, ny, nz = n.tolist() if isinstance(n, np.ndarray) else n  # the array product's values, without its cost
+    return np.array([g * nx, g * ny, g * nz])
 
 
 def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # noqa: E741

@@ -211,7 +211,8 @@ def test_far_gate_jitter_is_filtered_near_gate_response_is_not() -> None:
             b = BoundingBox(320 + noise[i, 0], 240 + noise[i, 1], size, size, 0.9, t)
             out = ctrl.step(t, b, LEVEL, None, t)
             if ctrl._closing is not None and ctrl._closing.x is not None:
-                ctrl._closing.x = (ctrl._closing.state[0], d_dot)  # hold the closing speed: the schedule's input, not under test here
+                # hold the closing speed: the schedule's input, not under test here
+                ctrl._closing.x = (ctrl._closing.state[0], d_dot)
             rates.append(out.lambda_dot)
         return float(np.std(rates[30:]))
 
