@@ -25,7 +25,7 @@ import numpy as np
 
 from companion import guidance
 from companion.closing import ClosingParams, ClosingSpeedEstimator
-from companion.frames import P_NED_ENU, R_from_quat_wxyz, euler_ned_deg_from_R
+from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu
 from companion.guidance import GuidanceParams, Setpoint
 from companion.ownmotion import OwnMotion
 from perception.fastinit import fast_init
@@ -223,7 +223,7 @@ class PNController:
         if rejected is None:
             assert box is not None
             l_ned = R_ned_frd.dot(self.camera.ray_body(box.cx, box.cy))
-            l_enu = P_NED_ENU.dot(l_ned)
+            l_enu = swap_ned_enu(l_ned)
             rejected = self._jump(t, l_enu)
             if rejected is None:
                 self._closing_speed(t, box, R_ned_frd, accel_frd)
@@ -242,7 +242,7 @@ class PNController:
         ax, ay = float(accel_frd[0]), float(accel_frd[1])
         if not (math.isfinite(ax) and math.isfinite(ay)):
             return
-        d = P_NED_ENU.dot(R_ned_frd[:, 0] * ax + R_ned_frd[:, 1] * ay)
+        d = swap_ned_enu(R_ned_frd[:, 0] * ax + R_ned_frd[:, 1] * ay)
         if self._drag is None or self._t_drag is None or not (0.0 < t - self._t_drag <= self.p.max_dt):
             self._drag = d
         else:
@@ -260,7 +260,7 @@ class PNController:
         if accel_frd is not None and self._l_prev is not None and d is not None:
             # Range acceleration explained by our own motion: -a . l + d lambda_dot^2 (gate assumed unaccelerated).
             a_ned = R_ned_frd.dot(np.asarray(accel_frd, dtype=float)) + np.array([0.0, 0.0, guidance.G])
-            u = -float(P_NED_ENU.dot(a_ned).dot(self._l_prev)) + d * self._lam * self._lam
+            u = -float(swap_ned_enu(a_ned).dot(self._l_prev)) + d * self._lam * self._lam
         est.update(t, box, u)
 
     # -- internals -------------------------------------------------------------------------
@@ -436,7 +436,7 @@ class PNController:
                 nx, ny, nz = nx + drag_y * yx, ny + drag_y * yy, nz + drag_y * yz
             self._note_command((nx, ny, nz))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", P_NED_ENU.dot(l_f), lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
+        return ControlOutput(t, sp, "pn", swap_ned_enu(l_f), lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
                              v_rel)
 
     def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray | tuple[float, float, float],
@@ -486,7 +486,7 @@ class PNController:
         # (the app's safety layer decides when "lost" becomes an abort).
         sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._y_ref(self._l_prev, R_ned_frd))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "coast", P_NED_ENU.dot(self._l_prev), 0.0, zero, sol.demand_scale, sol.f_th,
+        return ControlOutput(t, sp, "coast", swap_ned_enu(self._l_prev), 0.0, zero, sol.demand_scale, sol.f_th,
                              rejected)
 
     @staticmethod
@@ -499,7 +499,7 @@ class PNController:
     @staticmethod
     def _body_y_enu(R_ned_frd: np.ndarray) -> np.ndarray:
         # FLU y = -FRD y; re-expressed in ENU. Only used to orient the PN frame at a vertical LOS.
-        return -P_NED_ENU.dot(R_ned_frd[:, 1])
+        return -swap_ned_enu(R_ned_frd[:, 1])
 
 
 

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Literal, Protocol
 import numpy as np
 
 from companion import guidance
-from companion.frames import P_NED_ENU, R_from_euler_ned_deg, R_from_quat_wxyz, euler_ned_deg_from_R
+from companion.frames import R_from_euler_ned_deg, R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu
 from companion.guidance import Setpoint
 from companion.limits import CloseDetector, SafetyLimits
 from companion.pullup import PullUpParams, PullUpPlanner, arrest_loss
@@ -475,7 +475,7 @@ class Engagement:
     def _note_los(self, out: object) -> None:
         los = getattr(out, "los_ned", None)
         if los is not None:
-            self._los_enu = P_NED_ENU.dot(np.asarray(los, dtype=float))
+            self._los_enu = swap_ned_enu(np.asarray(los, dtype=float))
 
     def _thrust_model(self) -> tuple[float, float, float, float]:
         """(hover thrust, thrust_min, f_min, f_max): the controller's current numbers when it has them (the app
@@ -492,7 +492,7 @@ class Engagement:
         l = self._los_enu  # noqa: E741
         if l is None:  # no LOS was ever filtered (cannot happen after a close estimate): look straight ahead
             R = R_from_quat_wxyz(q)
-            l = P_NED_ENU.dot(R[:, 0])  # noqa: E741
+            l = swap_ned_enu(R[:, 0])  # noqa: E741
         drag = getattr(self.controller, "drag_enu", None) if self.params.pass_keeps_velocity else None
         sol = guidance.straight_pass(l, f_min, f_max, max_tilt=self.params.max_tilt, drag=drag)
         return guidance.to_setpoint(sol.R_W_B, sol.f_th, hover, thrust_min)

@@ -39,6 +39,14 @@ def frd_to_flu(v: np.ndarray) -> np.ndarray:
     return np.asarray(v, dtype=float) @ F_FRD_FLU.T
 
 
+def swap_ned_enu(v: np.ndarray) -> np.ndarray:
+    """``P_NED_ENU.dot(v)`` for a 3-vector (either way: P is its own inverse), bit for bit: every product is by
+    0 or +-1 and exact, so their sum is exact in any order; BLAS adds them to a +0 accumulator, which the
+    leading ``0.0 +`` repeats for the sign of a zero. Without a matrix product's cost (every frame)."""
+    x, y, z = v.tolist()
+    return np.array([0.0 + 0.0 * x + y + 0.0 * z, 0.0 + x + 0.0 * y + 0.0 * z, 0.0 + 0.0 * x + 0.0 * y - z])
+
+
 def R_ned_frd_from_enu_flu(R_enu_flu: np.ndarray) -> np.ndarray:
     """Body-to-world rotation, re-expressed from ENU/FLU to NED/FRD."""
     return P_NED_ENU.dot(R_enu_flu).dot(F_FRD_FLU)
@@ -107,11 +115,11 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
     if not (n > 1e-12 and math.isfinite(n)):
         raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
     s = 2.0 / n
-    R = np.array([
-        [1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
-        [s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w)],
-        [s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y)],
-    ])
+    R = np.array((  # flat, then reshaped: a third cheaper than from nested lists (every frame)
+        1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w),
+        s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w),
+        s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y),
+    )).reshape(3, 3)
     if key is not None:
         _LAST_R = (key, R.copy())  # one tuple rebinding: a reader on another thread sees a matching pair
     return R
