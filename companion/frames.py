@@ -13,6 +13,7 @@ A rotation ``R_a_b`` maps vectors from frame b to frame a (``v_a = R_a_b @ v_b``
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -66,7 +67,7 @@ def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:
     return euler_ned_deg_from_rows(np.asarray(R_ned_frd, dtype=float).tolist())
 
 
-def euler_ned_deg_from_rows(R: list[list[float]]) -> tuple[float, float, float]:
+def euler_ned_deg_from_rows(R: Sequence[Sequence[float]]) -> tuple[float, float, float]:
     """:func:`euler_ned_deg_from_R` of a rotation given as nested lists of floats (``R.tolist()``)."""
     (r00, r01, _), (r10, r11, _), (r20, r21, r22) = R
     pitch = -math.asin(min(1.0, max(-1.0, r20)))

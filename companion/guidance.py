@@ -524,7 +524,7 @@ def _demand_scale(a_y: float, a_z: float, g_y: float, g_z: float, p: GuidancePar
 def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
     """eq:meth_body_pn_rotation ``R_B^PN = R_y(phi) R_x(theta)``, multiplied out."""
     cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
-    return np.array([[cp, sp * st, sp * ct], [0.0, ct, -st], [-sp, cp * st, cp * ct]])
+    return np.array((cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(3, 3)  # flat: cheaper
 
 
 def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
@@ -538,7 +538,8 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
     ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world).
     """
     rows = _pn_frame_rows(l, y_ref)
-    R_W_PN = np.array(rows)
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
+    R_W_PN = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
     ax, ay, az = a_n.tolist()
     (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
@@ -601,9 +602,10 @@ def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min:
     # = P_NED_ENU @ R_W_B @ F_FRD_FLU = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS, without two matmuls; in floats
     # (x * 1.0 and x * -1.0 exactly as numpy's elementwise product, signed zeros included).
     (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
-    rows = [[b0 * 1.0, b1 * -1.0, b2 * -1.0], [a0 * 1.0, a1 * -1.0, a2 * -1.0], [c0 * -1.0, c1 * 1.0, c2 * 1.0]]
+    rows = ((b0 * 1.0, b1 * -1.0, b2 * -1.0), (a0 * 1.0, a1 * -1.0, a2 * -1.0), (c0 * -1.0, c1 * 1.0, c2 * 1.0))
     roll, pitch, yaw = euler_ned_deg_from_rows(rows)
-    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), np.array(rows))
+    R = np.array((*rows[0], *rows[1], *rows[2])).reshape(3, 3)  # flat, then reshaped: cheaper than nested
+    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R)
 
 
 def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:
