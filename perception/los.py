@@ -35,6 +35,12 @@ class CameraModel:
         object.__setattr__(self, "_K_inv_scalars", (float(Ki[0, 0]), float(Ki[0, 1]), float(Ki[0, 2]),
                                                     float(Ki[1, 1]), float(Ki[1, 2])))
         object.__setattr__(self, "_distorted", bool(self.dist.size and np.any(self.dist != 0.0)))
+        # A mount that only permutes and negates axes (a camera along a body axis, the common case): its
+        # rows as floats, for ray_body without a matrix product (every frame).
+        R = np.asarray(self.R_body_cam, dtype=float)
+        perm = R.shape == (3, 3) and bool(np.isin(R, (0.0, 1.0, -1.0)).all()) and bool(
+            (np.count_nonzero(R, axis=0) == 1).all() and (np.count_nonzero(R, axis=1) == 1).all())
+        object.__setattr__(self, "_perm_rows", tuple(tuple(r) for r in R.tolist()) if perm else None)
 
     @classmethod
     def from_config(cls, camera: Any) -> CameraModel:
@@ -67,7 +73,15 @@ class CameraModel:
 
     def ray_body(self, u: float, v: float) -> np.ndarray:
         """Unit ray in body FRD through pixel (u, v)."""
-        return self.R_body_cam.dot(self.ray_cam(u, v))
+        rows = self._perm_rows  # type: ignore[attr-defined]
+        if rows is None:
+            return self.R_body_cam.dot(self.ray_cam(u, v))
+        # Every product is by 0 or +-1 and exact, one non-zero per row: the sum is exact in any order, the float
+        # the matrix product gives; BLAS adds to a +0 accumulator, which the leading 0.0 repeats (signed zeros).
+        x, y, z = self.ray_cam_xyz(u, v)
+        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
+        return np.array([0.0 + a0 * x + a1 * y + a2 * z, 0.0 + b0 * x + b1 * y + b2 * z,
+                         0.0 + c0 * x + c1 * y + c2 * z])
 
     def project_body(self, v_body: np.ndarray) -> tuple[float, float] | None:
         """Pixel of a body-frame direction or point (distortion applied); None if behind the camera."""

@@ -152,3 +152,19 @@ def test_flat_reshaped_rotation_is_the_nested_one() -> None:
         R = rq(np.array([w, x, y, z]))
         assert R.tobytes() == nested.tobytes() and R.flags.c_contiguous
         assert R.dot(np.array([0.3, -0.2, 0.9])).tobytes() == (nested @ np.array([0.3, -0.2, 0.9])).tobytes()
+
+
+def test_ray_body_of_an_axis_mount_is_the_matrix_product() -> None:
+    """A mount that permutes and negates axes takes ray_body's scalar path: the same bits as the matrix product;
+    a tilted mount keeps the matrix product."""
+    mounts = [np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+              np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), np.eye(3)]
+    K = np.array([[410.0, 0.0, 321.3], [0.0, 405.5, 238.7], [0.0, 0.0, 1.0]])
+    for R in mounts:
+        cam = CameraModel(K, np.array([]), R, 640, 480)
+        assert cam._perm_rows is not None
+        for u, v in [(321.3, 238.7), (0.0, 0.0), *RNG.uniform([-50, -50], [700, 530], size=(300, 2)).tolist()]:
+            assert cam.ray_body(u, v).tobytes() == R.dot(cam.ray_cam(u, v)).tobytes()
+    c, s = math.cos(0.26), math.sin(0.26)
+    tilted = CameraModel(K, np.array([]), np.array([[0.0, s, c], [1.0, 0.0, 0.0], [0.0, c, -s]]), 640, 480)
+    assert tilted._perm_rows is None
