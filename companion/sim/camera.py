@@ -125,6 +125,7 @@ class GeometricCamera:
         self._distorted = bool(model.dist.size and np.any(model.dist != 0.0))
         self.detector_noise: DetectorNoise | None = None  # set: the detector error model replaces pixel_noise
         self.rect: tuple[float, float] | None = None  # (half width, half height) of a rectangular target; None: ring
+        self._wh = np.array([float(model.width), float(model.height)])  # the image's far corner, px
 
     def use_rectangle(self, width: float, height: float) -> None:
         """The target is a width x height rectangle (m) in the gate plane, not a ring."""
@@ -234,21 +235,46 @@ class GeometricCamera:
 
     def _outline_extent(self, rim: np.ndarray) -> tuple[float, float, float, float] | None:
         """Pixel extent inside the image of a closed outline (camera-frame samples, in order)."""
-        nxt = _next_index(rim.shape[0])
+        n = rim.shape[0]
+        nxt = _next_index(n)
         front = rim[:, 2] > 1e-3
-        if front.all():
-            px = self.project(rim)
-            p0, p1 = px, px[nxt]
+        n_front = int(np.count_nonzero(front))
+        if n_front == n:
+            p0 = self.project(rim)
+            d = p0[nxt] - p0
         else:
-            if front.sum() < 2:
+            if n_front < 2:
                 return None
-            px = np.zeros((rim.shape[0], 2))
+            px = np.zeros((n, 2))
             px[front] = self.project(rim[front])
             both = front & front[nxt]  # chords with both ends in front of the camera
             p0, p1 = px[both], px[nxt][both]
             if p0.shape[0] == 0:
                 return None
-        d = p1 - p0
+            d = p1 - p0
+        if not d.all():
+            return self._clipped_extent_general(p0, d)  # a chord along an image axis (rare)
+        # Liang-Barsky with no chord parallel to an image axis: per axis, one border bounds the entry (t0) and
+        # the other the exit (t1), chosen by the sign of d: entry (-x0) / dx or (w - x0) / dx, exit the other.
+        # The same quotients as the general form's (x0 / -dx == -x0 / dx exactly) in fewer numpy calls: this
+        # runs in a third of the frames (a ring cut by the border) and was ~10 % of a simulator frame.
+        neg, room = -p0, self._wh - p0  # (-x0, -y0), (w - x0, h - y0)
+        ahead = d > 0.0
+        q0, q1 = np.where(ahead, neg, room) / d, np.where(ahead, room, neg) / d
+        t0 = np.maximum(q0[:, 0], q0[:, 1])  # column-wise: a reduce over rows of two is slower
+        np.maximum(t0, 0.0, out=t0)
+        t1 = np.minimum(q1[:, 0], q1[:, 1])
+        np.minimum(t1, 1.0, out=t1)
+        ends = np.concatenate((p0 + t0[:, None] * d, p0 + t1[:, None] * d), axis=1)[t0 <= t1]
+        if ends.shape[0] == 0:
+            return None
+        u0, v0, u0b, v0b = np.minimum.reduce(ends, axis=0).tolist()
+        u1, v1, u1b, v1b = np.maximum.reduce(ends, axis=0).tolist()
+        return min(u0, u0b), min(v0, v0b), max(u1, u1b), max(v1, v1b)
+
+    def _clipped_extent_general(self, p0: np.ndarray, d: np.ndarray) -> tuple[float, float, float, float] | None:
+        """Liang-Barsky of the chords p0 -> p0 + d against the image rectangle, any chord; the extent of what
+        is left."""
         w, h = float(self.model.width), float(self.model.height)
         pp = np.concatenate((-d, d), axis=1)  # (-dx, -dy, dx, dy)
         qq = np.concatenate((p0, (w, h) - p0), axis=1)  # (x0, y0, w - x0, h - y0)
