@@ -70,6 +70,14 @@ def _rim_basis(normal: tuple[float, float, float]) -> np.ndarray:
     return np.vstack((u, np.cross(nrm, u)))
 
 
+@lru_cache(maxsize=64)
+def _scaled_basis(normal: tuple[float, float, float], radius: float) -> np.ndarray:
+    """``radius * _rim_basis(normal)`` (cached: the same gate every frame of a run)."""
+    ab = radius * _rim_basis(normal)
+    ab.flags.writeable = False
+    return ab
+
+
 def _normal_key(normal: Any) -> tuple[float, float, float]:
     """The gate normal as _rim_basis's cache key: ``tolist`` gives the same floats as ``float()`` of each element
     in one call (every frame; the generator it replaces was ~2 % of a simulator frame)."""
@@ -126,6 +134,11 @@ class GeometricCamera:
         self.detector_noise: DetectorNoise | None = None  # set: the detector error model replaces pixel_noise
         self.rect: tuple[float, float] | None = None  # (half width, half height) of a rectangular target; None: ring
         self._wh = np.array([float(model.width), float(model.height)])  # the image's far corner, px
+        K = model.K
+        # (fx, cx, fy, cy) of an undistorted camera without skew (the ring's closed-form extent), else None.
+        self._pinhole: tuple[float, float, float, float] | None = (
+            (float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]))
+            if not self._distorted and K[0, 1] == 0.0 else None)
 
     def use_rectangle(self, width: float, height: float) -> None:
         """The target is a width x height rectangle (m) in the gate plane, not a ring."""
@@ -158,26 +171,24 @@ class GeometricCamera:
         m = self.model
         R_cam_world = (R_enu_flu @ self._R_flu_cam).T
         c = R_cam_world @ (centre - p_enu)
-        if c[2] <= 1e-3:
+        # Python floats of the numpy results (tolist: the same values as float() of each element, in one call).
+        c0, c1, cz = c.tolist()
+        if cz <= 1e-3:
             return None
-        basis = _rim_basis(_normal_key(normal))
-        ab = (radius * basis) @ R_cam_world.T  # rim = c + a cos + b sin
-        a, b = ab[0], ab[1]
-        K = m.K
+        key = _normal_key(normal)
         if self.rect is not None:
-            return self._rect_box(c, basis @ R_cam_world.T, t)
-        if not self._distorted and K[0, 1] == 0.0 and c[2] - math.hypot(a[2], b[2]) > 1e-3:
+            return self._rect_box(c, _rim_basis(key) @ R_cam_world.T, t)
+        ab = _scaled_basis(key, float(radius)) @ R_cam_world.T  # rim = c + a cos + b sin
+        (a0, a1, az), (b0, b1, bz) = ab.tolist()
+        if self._pinhole is not None and cz - math.hypot(az, bz) > 1e-3:
             # Whole ring in front of an undistorted camera: exact extent of the projected circle.
-            fx, cx, fy, cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
-            cz, az, bz = float(c[2]), float(a[2]), float(b[2])
-            cu = fx * float(c[0]) / cz + cx
-            cv = fy * float(c[1]) / cz + cy
+            fx, cx, fy, cy = self._pinhole
+            cu = fx * c0 / cz + cx
+            cv = fy * c1 / cz + cy
             if not self.clip and not (0.0 <= cu <= m.width and 0.0 <= cv <= m.height):
                 return None  # the FOV check: the gate centre must be in the image
-            u0, u1 = _ratio_extremes(fx * float(c[0]) + cx * cz, fx * float(a[0]) + cx * az,
-                                     fx * float(b[0]) + cx * bz, cz, az, bz)
-            v0, v1 = _ratio_extremes(fy * float(c[1]) + cy * cz, fy * float(a[1]) + cy * az,
-                                     fy * float(b[1]) + cy * bz, cz, az, bz)
+            u0, u1 = _ratio_extremes(fx * c0 + cx * cz, fx * a0 + cx * az, fx * b0 + cx * bz, cz, az, bz)
+            v0, v1 = _ratio_extremes(fy * c1 + cy * cz, fy * a1 + cy * az, fy * b1 + cy * bz, cz, az, bz)
         else:
             rim = c + _COS_SIN @ ab  # sampled rim, camera frame
             front = rim[rim[:, 2] > 1e-3]  # rim points behind the camera: the ring is being passed
@@ -252,7 +263,7 @@ class GeometricCamera:
             if p0.shape[0] == 0:
                 return None
             d = p1 - p0
-        if not d.all():
+        if np.count_nonzero(d) < d.size:  # (count_nonzero: no Python wrapper, unlike d.all())
             return self._clipped_extent_general(p0, d)  # a chord along an image axis (rare)
         # Liang-Barsky with no chord parallel to an image axis: per axis, one border bounds the entry (t0) and
         # the other the exit (t1), chosen by the sign of d: entry (-x0) / dx or (w - x0) / dx, exit the other.
@@ -302,12 +313,12 @@ class GeometricCamera:
             return self.detector_noise.apply(box)
         if box is None or self.pixel_noise <= 0.0:
             return box
-        n = self.rng.normal(0.0, self.pixel_noise, 4)
+        n0, n1, n2, n3 = self.rng.normal(0.0, self.pixel_noise, 4).tolist()  # Python floats: cheaper downstream
         m = self.model
-        cx = min(max(box.cx + n[0], 0.0), float(m.width))
-        cy = min(max(box.cy + n[1], 0.0), float(m.height))
-        w = max(box.w + n[2], 1.0)
-        h = max(box.h + n[3], 1.0)
+        cx = min(max(box.cx + n0, 0.0), float(m.width))
+        cy = min(max(box.cy + n1, 0.0), float(m.height))
+        w = max(box.w + n2, 1.0)
+        h = max(box.h + n3, 1.0)
         return BoundingBox(cx, cy, w, h, 1.0, t)
 
 
