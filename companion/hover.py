@@ -136,9 +136,15 @@ def thrust_specific_force(accel_frd: Any, R_ned_frd: Any | None, cfg: HoverConfi
         return -float(f[2])
     r = np.asarray(R_ned_frd, float)[2]
     cos_tilt = float(r[2])
-    if not cos_tilt >= math.cos(math.radians(c.max_tilt)):
+    if not cos_tilt >= _cos_deg(c.max_tilt):
         return math.nan
     return -float(r @ f) / cos_tilt
+
+
+@cache
+def _cos_deg(deg: float) -> float:
+    """cos of an angle in degrees (cached: the same configured limit every frame)."""
+    return math.cos(math.radians(deg))
 
 
 HOVER_MISMATCH = 0.10  # relative difference between two hover thrusts that is worth a warning line

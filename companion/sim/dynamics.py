@@ -320,7 +320,8 @@ class Quadrotor:
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of an xyzw quaternion (scipy order); the closed form lives in companion/frames.py."""
-    return R_from_quat_wxyz((q[3], q[0], q[1], q[2]))
+    x, y, z, w = q.tolist() if isinstance(q, np.ndarray) else q  # Python floats: the closed form's cheap path
+    return R_from_quat_wxyz((w, x, y, z))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
