@@ -142,6 +142,7 @@ class GeometricCamera:
         self.rect: tuple[float, float] | None = None  # (half width, half height) of a rectangular target; None: ring
         self._wh = np.array([float(model.width), float(model.height)])  # the image's far corner, px
         K = model.K
+        self._K2T, self._k2 = K[:2, :2].T, K[:2, 2]  # project's views of K (the same arrays, made once)
         # (fx, cx, fy, cy) of an undistorted camera without skew (the ring's closed-form extent), else None.
         self._pinhole: tuple[float, float, float, float] | None = (
             (float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]))
@@ -161,9 +162,8 @@ class GeometricCamera:
             img, _ = cv2.projectPoints(points_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
                                        self.model.K, self.model.dist)
             return img.reshape(-1, 2)
-        K = self.model.K
         xy = points_cam[:, :2] / points_cam[:, 2:3]
-        return xy @ K[:2, :2].T + K[:2, 2]
+        return xy @ self._K2T + self._k2
 
     def to_camera(self, points_world: np.ndarray, p_enu: np.ndarray, R_enu_flu: np.ndarray) -> np.ndarray:
         """World ENU points (n, 3) -> camera OpenCV frame (n, 3)."""
