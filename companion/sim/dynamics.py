@@ -213,90 +213,97 @@ class Quadrotor:
             coeffs = (n, h, 1.0 - math.exp(-h / p.tau_omega), 1.0 - math.exp(-h / p.tau_thrust))
             self._coeffs[dt] = coeffs
         n, h, a_w, a_f = coeffs
-        k_att = 2.0 / p.tau_att
-        wmax = p.max_rate
-        if p.cmd_delay <= 0.0:
-            for _ in range(n):
-                self._substep(h, qc, f_cmd, wind, a_w, a_f, k_att, wmax)
-            return self._publish()
-        # Delayed: the command reaches the loops cmd_delay after it was given; until the first one arrives the
-        # vehicle holds the first command it got (as an autopilot holds its last setpoint).
-        queue = self._queue
-        queue.append((self._t + p.cmd_delay - 1e-9, qc, f_cmd))
-        if self._active is None:
-            self._active = (qc, f_cmd)
-        for _ in range(n):
-            while queue and queue[0][0] <= self._t:
-                _, q_a, f_a = queue.popleft()
-                self._active = (q_a, f_a)
-            self._substep(h, self._active[0], self._active[1], wind, a_w, a_f, k_att, wmax)
+        if p.cmd_delay > 0.0:
+            # Delayed: the command reaches the loops cmd_delay after it was given; until the first one arrives the
+            # vehicle holds the first command it got (as an autopilot holds its last setpoint).
+            self._queue.append((self._t + p.cmd_delay - 1e-9, qc, f_cmd))
+            if self._active is None:
+                self._active = (qc, f_cmd)
+        self._integrate(n, h, qc, f_cmd, wind, a_w, a_f, 2.0 / p.tau_att, p.max_rate)
         return self._publish()
 
-    def _substep(self, h, qc, f_cmd, wind, a_w, a_f, k_att, wmax) -> None:
-        # Hand-inlined quaternion algebra: this is the simulator's innermost loop.
+    def _integrate(self, n: int, h: float, qc: tuple, f_cmd: float, wind: tuple, a_w: float, a_f: float,
+                   k_att: float, wmax: float) -> None:
+        """n substeps of h holding (qc, f_cmd), or with cmd_delay the queued commands as they fall due.
+
+        The simulator's innermost loop: hand-inlined quaternion algebra on local floats (the state is loaded
+        once and stored back after the n substeps; the arithmetic is the same expression by expression)."""
         p = self.params
+        queue = self._queue if p.cmd_delay > 0.0 else None
+        k_lin, k_quad, touchdown = self._k_lin, self._k_quad, p.max_touchdown_speed
+        wdx, wdy, wdz = wind
+        t, f, on_ground, contact, acc = self._t, self._f, self._on_ground, self._contact, self._a
         qx, qy, qz, qw = self._q
-        cx, cy, cz, cw = qc
-        # Attitude controller (Brescianini): q_e = q^-1 * q_c, omega_c = 2/tau sgn(q_e0) q_e(1:3).
-        ew = qw * cw + qx * cx + qy * cy + qz * cz
-        ex = qw * cx - qx * cw - qy * cz + qz * cy
-        ey = qw * cy + qx * cz - qy * cw - qz * cx
-        ez = qw * cz - qx * cy + qy * cx - qz * cw
-        k = k_att if ew >= 0.0 else -k_att
-        w = self._w
-        # Exact discretisation of the first-order rate response, command clipped to the rate limit.
-        cx_, cy_, cz_ = k * ex, k * ey, k * ez
-        cx_ = wmax if cx_ > wmax else (-wmax if cx_ < -wmax else cx_)
-        cy_ = wmax if cy_ > wmax else (-wmax if cy_ < -wmax else cy_)
-        cz_ = wmax if cz_ > wmax else (-wmax if cz_ < -wmax else cz_)
-        w[0] += (cx_ - w[0]) * a_w
-        w[1] += (cy_ - w[1]) * a_w
-        w[2] += (cz_ - w[2]) * a_w
-        self._f += (f_cmd - self._f) * a_f  # thrust lag
-        f = self._f
-        # Translational dynamics: a = R (f e_z) - f_aero / m + g; R e_z is the third column of R(q).
-        v = self._v
-        vax, vay, vaz = v[0] - wind[0], v[1] - wind[1], v[2] - wind[2]
-        k_d = self._k_lin + self._k_quad * math.sqrt(vax * vax + vay * vay + vaz * vaz)
-        ax = 2.0 * f * (qx * qz + qy * qw) - k_d * vax
-        ay = 2.0 * f * (qy * qz - qx * qw) - k_d * vay
-        az = f * (1.0 - 2.0 * (qx * qx + qy * qy)) - k_d * vaz - G
-        pos = self._p
-        if self._on_ground and az <= 0.0:
-            # Resting on the ground: the normal force cancels everything (legs don't slide).
-            v[0] = v[1] = v[2] = 0.0
-            self._a = (0.0, 0.0, 0.0)
-        else:
-            self._on_ground = False
-            # Semi-implicit Euler: velocity first, then position with the new velocity.
-            v[0] += ax * h
-            v[1] += ay * h
-            v[2] += az * h
-            pos[0] += v[0] * h
-            pos[1] += v[1] * h
-            pos[2] += v[2] * h
-            self._a = (ax, ay, az)
-            if pos[2] <= 0.0:
-                if -v[2] > p.max_touchdown_speed:
-                    self._contact = True
-                pos[2] = 0.0
-                v[0] = v[1] = v[2] = 0.0
-                self._on_ground = True
-                self._a = (0.0, 0.0, 0.0)
-        # Attitude kinematics: q <- q * exp(omega h / 2), exact for constant omega over the step.
-        wx, wy, wz = w
-        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
-        if wn > 1e-12:
-            half = 0.5 * wn * h
-            sh = math.sin(half) / wn
-            dx, dy, dz, dw = wx * sh, wy * sh, wz * sh, math.cos(half)
-            nx = qw * dx + qx * dw + qy * dz - qz * dy
-            ny = qw * dy - qx * dz + qy * dw + qz * dx
-            nz = qw * dz + qx * dy - qy * dx + qz * dw
-            nw = qw * dw - qx * dx - qy * dy - qz * dz
-            qn = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
-            self._q = (nx * qn, ny * qn, nz * qn, nw * qn)
-        self._t += h
+        w0, w1, w2 = self._w
+        v0, v1, v2 = self._v
+        p0, p1, p2 = self._p
+        for _ in range(n):
+            if queue is not None:
+                while queue and queue[0][0] <= t:
+                    _, q_a, f_a = queue.popleft()
+                    self._active = (q_a, f_a)
+                qc, f_cmd = self._active  # type: ignore[misc]
+            cx, cy, cz, cw = qc
+            # Attitude controller (Brescianini): q_e = q^-1 * q_c, omega_c = 2/tau sgn(q_e0) q_e(1:3).
+            ew = qw * cw + qx * cx + qy * cy + qz * cz
+            ex = qw * cx - qx * cw - qy * cz + qz * cy
+            ey = qw * cy + qx * cz - qy * cw - qz * cx
+            ez = qw * cz - qx * cy + qy * cx - qz * cw
+            k = k_att if ew >= 0.0 else -k_att
+            # Exact discretisation of the first-order rate response, command clipped to the rate limit.
+            cx_, cy_, cz_ = k * ex, k * ey, k * ez
+            cx_ = wmax if cx_ > wmax else (-wmax if cx_ < -wmax else cx_)
+            cy_ = wmax if cy_ > wmax else (-wmax if cy_ < -wmax else cy_)
+            cz_ = wmax if cz_ > wmax else (-wmax if cz_ < -wmax else cz_)
+            w0 += (cx_ - w0) * a_w
+            w1 += (cy_ - w1) * a_w
+            w2 += (cz_ - w2) * a_w
+            f += (f_cmd - f) * a_f  # thrust lag
+            # Translational dynamics: a = R (f e_z) - f_aero / m + g; R e_z is the third column of R(q).
+            vax, vay, vaz = v0 - wdx, v1 - wdy, v2 - wdz
+            k_d = k_lin + k_quad * math.sqrt(vax * vax + vay * vay + vaz * vaz)
+            ax = 2.0 * f * (qx * qz + qy * qw) - k_d * vax
+            ay = 2.0 * f * (qy * qz - qx * qw) - k_d * vay
+            az = f * (1.0 - 2.0 * (qx * qx + qy * qy)) - k_d * vaz - G
+            if on_ground and az <= 0.0:
+                # Resting on the ground: the normal force cancels everything (legs don't slide).
+                v0 = v1 = v2 = 0.0
+                acc = (0.0, 0.0, 0.0)
+            else:
+                on_ground = False
+                # Semi-implicit Euler: velocity first, then position with the new velocity.
+                v0 += ax * h
+                v1 += ay * h
+                v2 += az * h
+                p0 += v0 * h
+                p1 += v1 * h
+                p2 += v2 * h
+                acc = (ax, ay, az)
+                if p2 <= 0.0:
+                    if -v2 > touchdown:
+                        contact = True
+                    p2 = 0.0
+                    v0 = v1 = v2 = 0.0
+                    on_ground = True
+                    acc = (0.0, 0.0, 0.0)
+            # Attitude kinematics: q <- q * exp(omega h / 2), exact for constant omega over the step.
+            wn = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            if wn > 1e-12:
+                half = 0.5 * wn * h
+                sh = math.sin(half) / wn
+                dx, dy, dz, dw = w0 * sh, w1 * sh, w2 * sh, math.cos(half)
+                nx = qw * dx + qx * dw + qy * dz - qz * dy
+                ny = qw * dy - qx * dz + qy * dw + qz * dx
+                nz = qw * dz + qx * dy - qy * dx + qz * dw
+                nw = qw * dw - qx * dx - qy * dy - qz * dz
+                qn = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+                qx, qy, qz, qw = nx * qn, ny * qn, nz * qn, nw * qn
+            t += h
+        self._t, self._f, self._on_ground, self._contact, self._a = t, f, on_ground, contact, acc
+        self._q = (qx, qy, qz, qw)
+        self._w = [w0, w1, w2]
+        self._v = [v0, v1, v2]
+        self._p = [p0, p1, p2]
 
     def specific_force_body(self) -> np.ndarray:
         """Accelerometer reading without noise (FLU, m/s^2): R^T (a - g) = (thrust - drag) / m, body."""
@@ -313,7 +320,8 @@ class Quadrotor:
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of an xyzw quaternion (scipy order); the closed form lives in companion/frames.py."""
-    return R_from_quat_wxyz((q[3], q[0], q[1], q[2]))
+    x, y, z, w = q.tolist() if isinstance(q, np.ndarray) else q  # Python floats: the closed form's cheap path
+    return R_from_quat_wxyz((w, x, y, z))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
@@ -334,7 +342,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
         r = math.sqrt(1.0 - m00 - m11 + m22)
         q = (0.5 * (m02 + m20) / r, 0.5 * (m12 + m21) / r, 0.5 * r, 0.5 * (m10 - m01) / r)
     out = np.array(q)
-    out /= np.linalg.norm(out)
+    out /= math.sqrt(out.dot(out))  # np.linalg.norm of a vector is sqrt(x.dot(x)): the same bits, without its overhead
     return -out if out[3] < 0 else out
 
 

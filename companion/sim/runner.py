@@ -204,6 +204,26 @@ class _BaselineOut:
     lambda_dot: float = math.nan
 
 
+_CAMERA_MODELS: dict[int, tuple[Any, Any]] = {}  # id(camera section) -> (the section, its CameraModel)
+
+
+def _camera_model(cfg: Config) -> Any:
+    """The true camera's model (``true_camera_config``), built once per (frozen) camera section: building it
+    (intrinsics, the mount's rotation through scipy) cost ~1 % of a short run. The section is kept with its
+    model, so its id is not reused while cached."""
+    from perception.los import CameraModel
+
+    cam = true_camera_config(cfg)
+    hit = _CAMERA_MODELS.get(id(cam))
+    if hit is not None and hit[0] is cam:
+        return hit[1]
+    if len(_CAMERA_MODELS) >= 16:  # a mount error builds a new section per run: keep the cache small
+        _CAMERA_MODELS.clear()
+    model = CameraModel.from_config(cam)
+    _CAMERA_MODELS[id(cam)] = (cam, model)
+    return model
+
+
 # Engagement ends -> the run's end reason (when the gate plane was not crossed).
 _END_REASONS = {Reason.OK: "handback", Reason.NO_TARGET: "no_target", Reason.TARGET_LOST: "target_lost",
                 Reason.MAX_ENGAGEMENT: "max_engagement", Reason.ALTITUDE_FLOOR: "altitude_floor"}
@@ -241,8 +261,6 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                                   ground_centre=0.5 * th if sim.target.on_ground else None)
     gate = scn.gate
     quad = Quadrotor(params, scn.state0)
-    from perception.los import CameraModel
-
     make_camera = GeometricCamera
     if spec.camera == "rendered":
         from perception.simcamera import geometric_camera_substitute
@@ -250,7 +268,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         make_camera = geometric_camera_substitute(cfg)
     # The engagement protocol sees a detector-like box: the ring's extent clipped to the image.
     # The camera sees through the true mount (sim.camera.mount_error); the controller keeps the configured one.
-    camera = make_camera(CameraModel.from_config(true_camera_config(cfg)), sim.camera.pixel_noise,
+    camera = make_camera(_camera_model(cfg), sim.camera.pixel_noise,
                          sim.camera.drop_prob, sim.camera.min_box, rng_cam, sim.camera.clip_box or engaged)
     if sim.camera.noise_model == "detector" and isinstance(camera, GeometricCamera):
         camera.use_detector_noise(detector_noise(cfg, rng_cam))
