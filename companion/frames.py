@@ -40,6 +40,12 @@ def frd_to_flu(v: np.ndarray) -> np.ndarray:
     return np.asarray(v, dtype=float) @ F_FRD_FLU.T
 
 
+def cross_xyz(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float]:
+    """``np.cross`` of two 3-vectors on floats: its element-wise formula (a1 b2 - a2 b1, ...), the same bits,
+    without its ~15 us of overhead."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
 def swap_ned_enu(v: np.ndarray) -> np.ndarray:
     """``P_NED_ENU.dot(v)`` for a 3-vector (either way: P is its own inverse), bit for bit: every product is by
     0 or +-1 and exact, so their sum is exact in any order; BLAS adds them to a +0 accumulator, which the

@@ -169,3 +169,13 @@ def test_ray_body_of_an_axis_mount_is_the_matrix_product() -> None:
     c, s = math.cos(0.26), math.sin(0.26)
     tilted = CameraModel(K, np.array([]), np.array([[0.0, s, c], [1.0, 0.0, 0.0], [0.0, c, -s]]), 640, 480)
     assert tilted._perm_rows is None
+
+
+def test_cross_xyz_is_np_cross() -> None:
+    from companion.frames import cross_xyz
+
+    special = [0.0, -0.0, 1.0, -1.0, 0.3]
+    pairs = [(np.array([a, b, c]), np.array([c, a, b])) for a in special for b in special for c in special]
+    pairs += [(RNG.normal(size=3), RNG.normal(size=3)) for _ in range(1000)]
+    for a, b in pairs:
+        assert np.array(cross_xyz(a.tolist(), b.tolist())).tobytes() == np.cross(a, b).tobytes(), (a, b)

@@ -35,7 +35,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from companion.frames import F_FRD_FLU
+from companion.frames import F_FRD_FLU, cross_xyz
 from companion.sim.boxnoise import PROFILES, DetectorNoise
 from perception.los import CameraModel
 from perception.types import BoundingBox
@@ -65,16 +65,10 @@ def _rim_basis(normal: tuple[float, float, float]) -> np.ndarray:
     """(2, 3): two unit vectors spanning the gate plane."""
     nrm = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
     a = (0.0, 0.0, 1.0) if abs(nrm[2]) < 0.9 else (1.0, 0.0, 0.0)
-    # Once per gate (a run): np.cross's own element-wise formula on floats, without its ~15 us of overhead.
     n0, n1, n2 = nrm.tolist()
-    u = np.array(_cross((n0, n1, n2), a))
+    u = np.array(cross_xyz((n0, n1, n2), a))
     u /= np.linalg.norm(u)
-    return np.array((u.tolist(), _cross((n0, n1, n2), tuple(u.tolist()))))
-
-
-def _cross(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
-    """``np.cross`` of two 3-vectors on floats (its arithmetic: a1 b2 - a2 b1, ... each rounded as numpy does)."""
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+    return np.array((u.tolist(), cross_xyz((n0, n1, n2), tuple(u.tolist()))))
 
 
 @lru_cache(maxsize=64)

@@ -24,6 +24,8 @@ from typing import Literal
 
 import numpy as np
 
+from companion.frames import cross_xyz
+
 MotionKind = Literal["stationary", "linear_slow", "linear_fast", "planar", "knot", "recede", "sinusoid"]
 MOTIONS: tuple[MotionKind, ...] = ("stationary", "linear_slow", "linear_fast", "planar", "knot")  # the paper's
 ALL_MOTIONS: tuple[MotionKind, ...] = (*MOTIONS, "recede", "sinusoid")
@@ -158,9 +160,7 @@ def motion_frame(normal_enu: np.ndarray) -> np.ndarray:
     n = np.array([normal_enu[0], normal_enu[1], 0.0])
     n /= np.linalg.norm(n)
     n0, n1, n2 = n.tolist()
-    # x = n cross z, horizontal, in the gate plane: np.cross's element-wise formula on floats (once per run, without
-    # np.cross's ~15 us of overhead).
-    x = (n1 * 1.0 - n2 * 0.0, n2 * 0.0 - n0 * 1.0, n0 * 0.0 - n1 * 0.0)
+    x = cross_xyz((n0, n1, n2), (0.0, 0.0, 1.0))  # n x z: horizontal, in the gate plane
     return np.array([[x[0], n0, 0.0], [x[1], n1, 0.0], [x[2], n2, 1.0]])
 
 
