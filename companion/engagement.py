@@ -115,6 +115,11 @@ class EngagementParams:
     # (a time-to-contact of 0.46-0.50 s read from a box jump, the gate leaving the top of the image 9 m out) were
     # claimed passes of gates never reached.
     lost_min_size: float = 0.25
+    # ...where "its last box" is the largest of the gate's boxes in this window before the loss. A ring passed by a
+    # slow vehicle leaves the view across a border: its cut box shrinks (0.81 -> 0.31 of the width in 0.2 s on
+    # PX4's SIH quad), the lock rejects the last sliver, and the gate was never "close" by either trigger: 11 of 32
+    # SIH flights through the gate ended TARGET_LOST, the vehicle coasting tilted behind it for 1 s.
+    near_window: float = 0.5  # s
     pass_keeps_velocity: bool = True  # the pass cancels the measured drag (keeps the velocity) when it is known
     # A box edge this close to the image border is cut. A detector's edges are noisy (1 px in the simulator):
     # at 1 px a ring on the border was completed in one frame and not in the next, and its LOS jumped by tens of
@@ -197,6 +202,7 @@ class Engagement:
     _rejecting: bool = False  # the last box was rejected by the lock (one event per spell)
     verifier: TargetVerifier | None = None  # is a box the configured target (companion/verify.py); None = no check
     _unverified: bool = False  # the last box failed verification (one event per spell)
+    _rejected_now: bool = False  # this frame's box was rejected (verification or lock): a box is in view
     used_box: BoundingBox | None = None  # the box this step's decisions used (None: none, or rejected)
     awaiting: bool = False  # a stable candidate waits for the operator's confirmation (app.engage confirm)
     _confirm: bool | None = None  # this step's confirmation (None: not needed)
@@ -243,6 +249,7 @@ class Engagement:
             whole = complete_clipped_box(box, p.width, p.height, p.cut_edge_px)
             box = whole if whole.is_valid(p.width, p.height) else box
         lock_event = ""
+        self._rejected_now = False
         if valid and self.verifier is not None and self.phase in (Phase.ACQUIRE, Phase.ENGAGE):
             assert box is not None
             why = self._verify(self.verifier, t, box, q_wxyz_ned_frd)
@@ -250,7 +257,7 @@ class Engagement:
                 if not self._unverified:
                     lock_event = (f"gate {self.passes[-1].gate}: box rejected, {why}" if self.phase is Phase.ENGAGE
                                   else f"candidate rejected, {why}")
-                valid, box = False, None
+                valid, box, self._rejected_now = False, None, True
             self._unverified = bool(why)
         if valid and self.phase is Phase.ENGAGE and self.lock is not None:
             assert box is not None
@@ -260,7 +267,7 @@ class Engagement:
                 # target-lost clock runs, the close detector does not see it).
                 if not self._rejecting:
                     lock_event = f"gate {self.passes[-1].gate}: box rejected, {chk.why}"
-                valid, box = False, None
+                valid, box, self._rejected_now = False, None, True
             self._rejecting = not chk.ok
         self._streak = self._streak + 1 if valid else 0
         self.used_box = box if valid else None  # what the decisions below saw (replay judges it against labels)
@@ -347,10 +354,13 @@ class Engagement:
             t, box if valid else None, est.ttc, self._los_enu, baro, self.limits.climb_rate, q)
         if fire is not None:
             est, why = replace(est, close=True, why=fire.why), f"gate close: {fire.why}"
-        elif not est.close and not valid and self._near(est) and not (self._rejecting or self._unverified):
-            # The gate vanished while close (a detector often loses a ring that fills the image): the pass has
-            # begun. Without this the controller would coast until "target lost" aborted a good pass.
-            why = f"gate lost while close (time-to-contact {est.ttc:.2f} s, box {est.size_frac:.2f} of the width)"
+        elif not est.close and not valid and not self._rejected_now and (near := self._near(t, est)):
+            # The gate vanished while close (a detector often loses a ring that fills the image, a slow vehicle's
+            # ring leaves across a border): the pass has begun. Without this the controller would coast until
+            # "target lost" aborted a good pass. Not while a box is in view that is not the gate (a wall edge
+            # rejected near the gate): that is coasted, then TARGET_LOST.
+            why = (f"gate lost while close (time-to-contact {est.ttc:.2f} s, box {near:.2f} of the width in the "
+                   f"last {self.params.near_window:.1f} s)")
         elif not est.close:
             return Decision(t, Phase.ENGAGE, out.setpoint, out)
         gp = self.passes[-1]
@@ -450,15 +460,18 @@ class Engagement:
                 return f"not one object: {chk.why.removeprefix('not the engaged gate: ')}"
         return ""
 
-    def _near(self, est: object) -> bool:
+    def _near(self, t: float, est: object) -> float:
         """Close enough that losing the box means the pass has begun: within ``near_factor`` of a close
-        trigger (time-to-contact or box size)."""
-        c, k = self.close, self.params.near_factor
-        ttc, size = getattr(est, "ttc", math.inf), getattr(est, "size_frac", 0.0)
-        if size < self.params.lost_min_size:  # a small box lost left the view (or was missed): not a pass
-            return False
-        return (c.trigger in ("ttc", "either") and ttc < k * c.ttc_threshold) or (
-            c.trigger in ("size", "either") and size > c.size_threshold / k)
+        trigger (time-to-contact, or the gate's largest box of the last ``near_window`` s). The box size it
+        judged (fraction of the width), 0.0 when not near."""
+        c, p = self.close, self.params
+        ttc = getattr(est, "ttc", math.inf)
+        size = max(getattr(est, "size_frac", 0.0), c.peak(t, p.near_window))
+        if size < p.lost_min_size:  # a small box lost left the view (or was missed): not a pass
+            return 0.0
+        near = (c.trigger in ("ttc", "either") and ttc < p.near_factor * c.ttc_threshold) or (
+            c.trigger in ("size", "either") and size > c.size_threshold / p.near_factor)
+        return size if near else 0.0
 
     def _go(self, phase: Phase, t: float) -> None:
         self.phase = phase

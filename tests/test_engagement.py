@@ -304,6 +304,38 @@ def test_a_small_box_lost_with_a_short_time_to_contact_is_no_pass():
     assert d.phase is Phase.ENGAGE and d.control.mode == "pn"
 
 
+def test_a_ring_leaving_across_a_border_starts_the_pass_from_its_recent_peak():
+    """PX4 SIH, 2026-12-06 (a 40-run table, run000): the slow vehicle's ring left the view across the lower-left
+    border. Its box peaked at 0.81 of the width, shrank while cut (so neither close trigger fired), the lock
+    rejected the last sliver, then nothing: TARGET_LOST 1 s after the vehicle went through 0.13 m from the
+    centre, coasting tilted meanwhile. The gate's largest box of the last near_window seconds says it was near."""
+    r = engaged("app.close_trigger=size")
+    r.feed([box(s) for s in _ramp(0.81 * W)] + [box(0.81 * W)])
+    leaving = [0.72, 0.67, 0.63, 0.57, 0.54, 0.31]  # the run's boxes, fractions of the width
+    ds = r.feed([box(f * W) for f in leaving])
+    assert all(d.phase is Phase.ENGAGE and d.control.mode == "pn" for d in ds)  # the lock took them: the gate
+    assert r.eng.close.ttc() == math.inf and leaving[-1] < CFG.app.size_threshold / r.eng.params.near_factor
+    d = r.feed([box(0.08 * W)])[0]  # the sliver: not the gate (a 4x shrink in a frame), no box
+    assert d.phase is Phase.ENGAGE and any("box rejected" in ev for ev in d.events)
+    d = r.feed([None])[0]
+    assert d.phase is Phase.PASS and d.why.startswith("gate lost while close") and "0.81 of the width" in d.why
+    r.until(Phase.RECOVER, None)
+    assert r.eng.passes[0].status == "confirmed"
+
+
+def test_a_peak_older_than_the_near_window_is_not_near() -> None:
+    """The same gate big once, then small for longer than near_window (it drifted away, or the vehicle turned off):
+    its loss is a lost gate (coast, then TARGET_LOST), not a pass."""
+    r = engaged("app.close_trigger=size")
+    r.feed([box(s) for s in _ramp(0.81 * W)] + [box(0.81 * W)])
+    n_small = math.ceil(r.eng.params.near_window / DT) + 1
+    r.feed([box(0.3 * W)] * n_small)
+    d = r.feed([None])[0]
+    assert d.phase is Phase.ENGAGE and d.control.mode == "coast"
+    end = r.until(Phase.ABORT, None)
+    assert end.reason is Reason.TARGET_LOST
+
+
 def test_a_box_lost_when_nearly_close_starts_the_pass_and_one_lost_far_away_does_not():
     # Far: a 40 px box (0.06 of the width, far below size_threshold / 2), then nothing: coast (target lost later).
     r = engaged()
