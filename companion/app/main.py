@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from collections.abc import Awaitable
 
+    from companion.app.session import SignalHandoff
+
 
 def register(subparsers: Any) -> None:
     from companion.app.states import Reason
@@ -82,11 +84,11 @@ def _overrides(args: argparse.Namespace) -> list[str]:
 
 def _cmd_fly(args: argparse.Namespace) -> int:
     from companion.app.record import is_recording, record_kwargs
-    from companion.app.session import StartRefused, fly
+    from companion.app.session import HANDOFF, StartRefused, fly
     from companion.config import load_config
     from companion.configbase import ConfigError
 
-    _guard_signals()
+    _guard_signals(HANDOFF)
     if args.record and is_recording(args.record):
         raise ConfigError(f"--record {args.record}: already holds a recording (index.csv); choose a new folder")
     cfg = load_config(args.config, _overrides(args))
@@ -99,6 +101,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         return exit_when_done(code)
     from companion.app.preflight import stdin_confirm
 
+    HANDOFF.open()  # a signal before fly()'s guard exists is kept for it (companion/app/session.py)
     _STARTED.set()  # from here fly() owns SIGTERM/SIGINT (companion/app/session.py) until its log is closed
     try:
         reason, folder, _ = run_flight_process(fly(cfg, status_line=args.status, plot=not args.no_plot,
@@ -118,14 +121,17 @@ def _cmd_fly(args: argparse.Namespace) -> int:
 _STARTED = threading.Event()
 
 
-def _guard_signals() -> None:
+def _guard_signals(handoff: SignalHandoff) -> None:
     """The process's SIGTERM/SIGINT outside fly(): before it, they end the command with one line ("interrupted",
-    exit 130: nothing was commanded); after it (the log is closed, worker threads are joined) they are ignored, so
-    the exit code stays the flight's outcome instead of -15 / a KeyboardInterrupt traceback."""
+    exit 130: nothing was commanded); between calling fly() and its guard existing, ``handoff`` keeps them for the
+    flight; after it (the log is closed, worker threads are joined) they are ignored, so the exit code stays the
+    flight's outcome instead of -15 / a KeyboardInterrupt traceback."""
 
     def on_signal(signum: int, frame: Any) -> None:
         if not _STARTED.is_set():
             raise KeyboardInterrupt
+        if handoff.offer(signal.Signals(signum).name):
+            return  # fly() is starting: its guard trips the flight with it at once
         with contextlib.suppress(Exception):
             os.write(2, f"companion: {signal.Signals(signum).name} received after the flight ended: ignored\n".encode())
 

@@ -70,6 +70,40 @@ async def fly(
             guard.restore()  # only now: the summary is written, the plot drawn
 
 
+class SignalHandoff:
+    """A signal that arrives after the CLI handed SIGTERM/SIGINT to ``fly`` and before fly's guard exists.
+
+    The CLI (companion/app/main.py) stops turning signals into "interrupted" when it calls ``fly``; the guard takes
+    over at fly's first lines. In between (an event loop and an executor made, a module imported: tens of ms, far
+    more on a loaded machine) a signal was "received after the flight ended: ignored" and the whole flight was
+    flown: a SIGINT seen so in a loaded test run, a ``systemctl stop`` at start-up the same. Now it is kept here and
+    the guard trips the flight with it at once, as for a signal during set-up.
+    """
+
+    def __init__(self) -> None:
+        self._open = False
+        self.pending: str | None = None
+
+    def open(self) -> None:
+        """The CLI is about to call ``fly``: signals from here are the flight's."""
+        self._open, self.pending = True, None
+
+    def offer(self, name: str) -> bool:
+        """From the CLI's handler: True if the flight will act on the signal (its guard does not exist yet)."""
+        if not self._open:
+            return False
+        self.pending = self.pending or name
+        return True
+
+    def take(self) -> str | None:
+        """fly's guard exists: the signal kept meanwhile, if any; later ones are the guard's."""
+        pending, self.pending, self._open = self.pending, None, False
+        return pending
+
+
+HANDOFF = SignalHandoff()
+
+
 class _SignalGuard:
     """SIGTERM/SIGINT for one flight, from ``fly``'s first line to its last.
 
@@ -88,8 +122,8 @@ class _SignalGuard:
         self.loop, self.stderr = loop, stderr
         self.app: FlightApp | None = None
         self.log: Any = None
-        self.pending: str | None = None
         self.old = {sig: signal.signal(sig, self._on_signal) for sig in self.SIGNALS}
+        self.pending: str | None = HANDOFF.take()  # one the CLI kept while fly() was starting
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         from companion.app.states import Reason

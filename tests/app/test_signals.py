@@ -312,6 +312,54 @@ def test_sigint_while_starting_is_one_line_not_a_traceback(sim, tmp_path, when):
         assert '"running"' not in summary.read_text()
 
 
+def test_a_signal_while_fly_starts_is_kept_for_the_flight(capfd) -> None:
+    """Stop 25's loaded CI: a SIGINT sent while the app loaded arrived after the CLI had handed signals to fly() and
+    before fly's guard existed; the CLI's handler said "received after the flight ended: ignored" and the whole
+    flight was flown (exit 0). A ``systemctl stop`` at start-up the same. The CLI's own handler, called as the
+    signal calls it, must keep it for the flight's guard, which trips the flight with it at once."""
+    import asyncio
+    import io
+
+    from companion.app import main, session
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    loop = asyncio.new_event_loop()
+    try:
+        main._guard_signals(session.HANDOFF)
+        handler = signal.getsignal(signal.SIGINT)
+        assert callable(handler)
+        with pytest.raises(KeyboardInterrupt):  # before fly(): the command is interrupted, nothing flown
+            handler(signal.SIGINT, None)
+        session.HANDOFF.open()
+        main._STARTED.set()
+        handler(signal.SIGINT, None)  # fly() called, its guard not made yet: kept, no exception
+        handler(signal.SIGTERM, None)  # a second one: the first is what the flight names
+        guard = session._SignalGuard(loop, io.StringIO())
+        try:
+            assert guard.pending == "SIGINT"
+
+            class _App:
+                tripped: tuple = ()
+
+                def trip(self, reason: Reason, why: str) -> None:
+                    self.tripped = (reason, why)
+
+            app = _App()
+            guard.attach(app)  # type: ignore[arg-type]
+            assert app.tripped == (Reason.SIGNAL, "SIGINT received during set-up")
+        finally:
+            guard.restore()
+        assert "ignored" not in capfd.readouterr().err
+        handler(signal.SIGTERM, None)  # the guard took over and gave back: after the flight, ignored (and said)
+        assert "SIGTERM received after the flight ended: ignored" in capfd.readouterr().err
+        assert session.HANDOFF.take() is None
+    finally:
+        main._STARTED.clear()
+        loop.close()
+        for s, h in saved.items():
+            signal.signal(s, h)
+
+
 def _freeze(proc: subprocess.Popen, seconds: float) -> None:
     """The app stopped as a whole (SIGSTOP: every thread, MAVSDK's too), then resumed."""
     os.kill(proc.pid, signal.SIGSTOP)
