@@ -28,6 +28,9 @@ class VerifyConfig(Section):
     acquire_cut: bool = Field(
         False, description="accept a candidate cut by the image border at ACQUIRE (its shape and size cannot be "
         "checked; during ENGAGE a cut box is always accepted)")
+    acquire_margin: Number = Field(
+        0.02, ge=0.0, le=0.2, description="fraction of the image width: at ACQUIRE a candidate with an edge this near "
+        "the border counts as cut (a detector's edges wander by several px between frames; 0: within 3 px only)")
     min_similarity: Number = Field(
         0.0, ge=0.0, le=1.0, description="appearance (hue-saturation histogram of the box, Bhattacharyya "
         "coefficient) against the box the track began with; below it is another object (0 = off)")

@@ -149,9 +149,33 @@ def test_a_candidate_cut_by_the_image_border_is_none_at_acquire_only() -> None:
     for b in (BoundingBox(2.5 + 20, 240, 40, 40), BoundingBox(320, 240 - 218.5, 40, 40),
               BoundingBox(640 - 22.5, 240, 40, 40)):  # each edge 2.5 px from a border (edge_px 3)
         assert "(cut)" in v.check(b, True), b
-    assert v.check(BoundingBox(3.5 + 20, 240, 40, 40), True) == ""  # 3.5 px: whole
+    margin = 0.02 * 640  # acquire_margin: 12.8 px at 640 px
+    assert v.acquire_edge_px() == pytest.approx(margin)
+    assert "(cut)" in v.check(BoundingBox(3.5 + 20, 240, 40, 40), True)  # 3.5 px: whole, but near enough to be cut
+    assert "(cut)" in v.check(BoundingBox(320, 480 - margin + 0.5 - 20, 40, 40), True)
+    assert v.check(BoundingBox(320, 480 - margin - 0.5 - 20, 40, 40), True) == ""  # 13.3 px inside: whole
+    assert v.check(BoundingBox(3.5 + 20, 240, 40, 40), False) == ""  # engaged: no margin at all
+    no_margin = TargetVerifier(_params(acquire_margin=0.0))  # the 3 px rule alone (the behaviour before)
+    assert no_margin.acquire_edge_px() == 3.0 and no_margin.check(BoundingBox(3.5 + 20, 240, 40, 40), True) == ""
     assert TargetVerifier(_params(acquire_cut=True)).check(bottom, True) == ""
-    assert v.rejected == {"cut": 4}
+    assert v.rejected == {"cut": 6}
+
+
+def test_no_engagement_begins_on_the_px4_clutter_near_the_border() -> None:
+    """The two engagements begun on clutter on PX4 SITL after the 3 px rule, their boxes as logged: x500 run065
+    (2026-12-02, 162x204 px at (88, 372): 6-7 px from the left and bottom borders) and SIH run028 (2026-12-06,
+    86-91 x 190-205 px at (592-596, 137-149): its right edge 0-5 px from the border from frame to frame, 3.3-5 px
+    in the ten frames that began the engagement)."""
+    n = load_config().app.acquire_frames
+    run065 = [BoundingBox(88.0, 372.0, 162.0, 204.0)] * n
+    run028 = [BoundingBox(591.5 + 0.35 * (k % 3), 143.0, 87.0 + (k % 3), 200.0) for k in range(n)]  # 3.3-5 px
+    for boxes in (run065, run028):
+        e = _eng()
+        _feed(e, boxes * 3)
+        assert e.phase is Phase.ACQUIRE
+        e = _eng("app.verify.acquire_margin=0")  # the 3 px rule alone engaged both
+        _feed(e, boxes * 3)
+        assert e.phase is Phase.ENGAGE
 
 
 def test_no_engagement_begins_on_a_cut_box_but_one_that_becomes_cut_flies_on() -> None:
