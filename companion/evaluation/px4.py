@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.evaluation.suites import PAPER, TABLE1_MOTIONS, app_run_seed, build_suite
-from companion.evaluation.tables import latency_table, setpoint_table
+from companion.evaluation.tables import claims_table, latency_table, setpoint_table
 from companion.px4sitl.truth import EARTH_RADIUS, SihTruth
 
 if TYPE_CHECKING:
@@ -415,7 +415,7 @@ def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, se
     from companion.config import config_as_dict
     from companion.evaluation.stats import RATE_NOTE, add_intervals
     from companion.px4sitl.launcher import find_sitl_dir
-    from companion.sim.scoring import aggregate
+    from companion.sim.scoring import aggregate, rkey
 
     if name not in SUPPORTED:
         raise ValueError(f"--autopilot px4 runs {', '.join(SUPPORTED)} (the other suites need ground truth or "
@@ -431,6 +431,9 @@ def run_px4_suite(name: str, cfg: Config, out_dir: Path, *, runs: int | None, se
     groups, md = suite.report(results, radii)
     total = add_intervals(aggregate(results, radii))
     md += f"\n\n{RATE_NOTE}\n\n" + setpoint_table(groups, total) + "\n\n" + latency_table(results)
+    gate_r = rkey(cfg.guidance.gate_radius)
+    if name == "table1" and gate_r in {rkey(r) for r in radii}:
+        md += "\n\n" + claims_table(results, gate_r)
     return {"suite": name, "autopilot": "px4", "seed": seed, "radii": radii, "total": total,
             "groups": groups, "markdown": md, "paper": PAPER[name], "wall_time_s": time.monotonic() - t0,
             "sim_time_s": sum(r.get("wall_s", 0.0) for r in results), "jobs": n_workers, "camera": camera,

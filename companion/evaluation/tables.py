@@ -54,6 +54,23 @@ def latency_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def claims_table(results: list[dict], radius: str) -> str:
+    """PX4 runs: the app's own word on the pass (``gates_passed_app``, a pass confirmed by the camera) against the
+    truth (crossed within ``radius`` m of the centre), by motion: an outcome must be true of the vehicle."""
+    lines = [f"| Gate motion | runs | through {radius} m (truth) | pass claimed | claimed and through | claimed, not "
+             f"through | through, not claimed |", "|---|---|---|---|---|---|---|"]
+    groups: dict[str, list[dict]] = {}
+    for r in results:
+        groups.setdefault(r.get("motion", "?"), []).append(r)
+    for name, rs in [*groups.items(), ("total", results)]:
+        through = [bool((r.get("success") or {}).get(radius)) for r in rs]
+        claimed = [(r.get("gates_passed_app") or 0) > 0 for r in rs]
+        both = sum(c and t for c, t in zip(claimed, through, strict=True))
+        lines.append(f"| {name} | {len(rs)} | {sum(through)} | {sum(claimed)} | {both} | {sum(claimed) - both} | "
+                     f"{sum(through) - both} |")
+    return "\n".join(lines)
+
+
 # What the PX4 suites' times measure (their runs start in PX4's hover).
 PX4_TIMES = {"table1": "t_gate: ENGAGE to the gate plane (runs start in hover 25 m away).",
              "intercept": "Duration: ENGAGE to the pull-up (runs start in hover 12 m up, the target 30-50 m ahead)."}
