@@ -122,8 +122,9 @@ class _SignalGuard:
         self.loop, self.stderr = loop, stderr
         self.app: FlightApp | None = None
         self.log: Any = None
+        self.pending: str | None = None
         self.old = {sig: signal.signal(sig, self._on_signal) for sig in self.SIGNALS}
-        self.pending: str | None = HANDOFF.take()  # one the CLI kept while fly() was starting
+        self.pending = HANDOFF.take() or self.pending  # one the CLI kept while fly() was starting
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         from companion.app.states import Reason
