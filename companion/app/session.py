@@ -76,8 +76,8 @@ class SignalHandoff:
     The CLI (companion/app/main.py) stops turning signals into "interrupted" when it calls ``fly``; the guard takes
     over at fly's first lines. In between (an event loop and an executor made, a module imported: tens of ms, far
     more on a loaded machine) a signal was "received after the flight ended: ignored" and the whole flight was
-    flown: a SIGINT seen so in a loaded test run, a ``systemctl stop`` at start-up the same. Now it is kept here and
-    the guard trips the flight with it at once, as for a signal during set-up.
+    flown (found reading the code behind a loaded test run's lost SIGINT; a ``systemctl stop`` at start-up the
+    same). Now it is kept here and the guard trips the flight with it at once, as for a signal during set-up.
     """
 
     def __init__(self) -> None:

@@ -34,14 +34,19 @@ def setpoint_table(groups: dict[str, dict], total: dict) -> str:
     return "\n".join(lines)
 
 
+def _by_motion(results: list[dict]) -> list[tuple[str, list[dict]]]:
+    """(motion, its runs) in first-seen order, then ("total", every run)."""
+    groups: dict[str, list[dict]] = {}
+    for r in results:
+        groups.setdefault(r.get("motion", "?"), []).append(r)
+    return [*groups.items(), ("total", results)]
+
+
 def latency_table(results: list[dict]) -> str:
     """PX4 runs: the app's frame-to-setpoint latency (from its summary) and how its flights ended, by motion."""
     lines = ["| Gate motion | runs | frame->setpoint p50 ms (mean) | p95 ms (max) | app outcomes |",
              "|---|---|---|---|---|"]
-    groups: dict[str, list[dict]] = {}
-    for r in results:
-        groups.setdefault(r.get("motion", "?"), []).append(r)
-    for name, rs in [*groups.items(), ("total", results)]:
+    for name, rs in _by_motion(results):
         p50 = [r["latency_p50_ms"] for r in rs if r.get("latency_p50_ms") is not None]
         p95 = [r["latency_p95_ms"] for r in rs if r.get("latency_p95_ms") is not None]
         outcomes: dict[str, int] = {}
@@ -59,10 +64,7 @@ def claims_table(results: list[dict], radius: str) -> str:
     truth (crossed within ``radius`` m of the centre), by motion: an outcome must be true of the vehicle."""
     lines = [f"| Gate motion | runs | through {radius} m (truth) | pass claimed | claimed and through | claimed, not "
              f"through | through, not claimed |", "|---|---|---|---|---|---|---|"]
-    groups: dict[str, list[dict]] = {}
-    for r in results:
-        groups.setdefault(r.get("motion", "?"), []).append(r)
-    for name, rs in [*groups.items(), ("total", results)]:
+    for name, rs in _by_motion(results):
         through = [bool((r.get("success") or {}).get(radius)) for r in rs]
         claimed = [(r.get("gates_passed_app") or 0) > 0 for r in rs]
         both = sum(c and t for c, t in zip(claimed, through, strict=True))

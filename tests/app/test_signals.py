@@ -313,10 +313,10 @@ def test_sigint_while_starting_is_one_line_not_a_traceback(sim, tmp_path, when):
 
 
 def test_a_signal_while_fly_starts_is_kept_for_the_flight(capfd) -> None:
-    """Stop 25's loaded CI: a SIGINT sent while the app loaded arrived after the CLI had handed signals to fly() and
-    before fly's guard existed; the CLI's handler said "received after the flight ended: ignored" and the whole
-    flight was flown (exit 0). A ``systemctl stop`` at start-up the same. The CLI's own handler, called as the
-    signal calls it, must keep it for the flight's guard, which trips the flight with it at once."""
+    """A signal after the CLI handed signals to fly() and before fly's guard existed was "received after the flight
+    ended: ignored" and the whole flight was flown (exit 0); a ``systemctl stop`` at start-up the same. The CLI's
+    own handler, called as the signal calls it, must keep it for the flight's guard, which trips the flight with
+    it at once."""
     import asyncio
     import io
 
