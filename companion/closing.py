@@ -77,6 +77,11 @@ class ClosingSpeedEstimator:
         return self._x
 
     @property
+    def P_vv(self) -> float:
+        """The range rate's variance, (m/s)^2."""
+        return self._P[2]
+
+    @property
     def P(self) -> np.ndarray:
         """The state covariance, 2x2 (a copy)."""
         p00, p01, p11 = self._P

@@ -203,6 +203,15 @@ class PNController:
         return self._l_prev is not None
 
     @property
+    def closing_rate(self) -> tuple[float, float] | None:
+        """The closing-speed filter's range rate (m/s, negative when closing) and its standard deviation as of
+        the last frame, None without the filter or before its first range (the target lock's speed bound)."""
+        est = self._closing
+        if est is None or est.state is None:
+            return None
+        return est.state[1], math.sqrt(max(est.P_vv, 0.0))
+
+    @property
     def drag_enu(self) -> np.ndarray | None:
         """The filtered aerodynamic acceleration (world ENU, m/s^2) the accelerometer measured, or None (no
         accelerometer given, or drag_compensation off). The straight pass cancels it."""

@@ -86,6 +86,11 @@ class Steering(Protocol):
 
     def reset(self) -> None: ...
 
+    @property
+    def closing_rate(self) -> tuple[float, float] | None:
+        """The closing-speed filter's (range rate, its std dev) in m/s, or None (no filter): the target lock's
+        speed bound."""
+
 
 @fast_init
 @dataclass(frozen=True, slots=True)
@@ -261,7 +266,7 @@ class Engagement:
             self._unverified = bool(why)
         if valid and self.phase is Phase.ENGAGE and self.lock is not None:
             assert box is not None
-            chk = self.lock.check(t, box, R_from_quat_wxyz(q_wxyz_ned_frd))
+            chk = self.lock.check(t, box, R_from_quat_wxyz(q_wxyz_ned_frd), self.controller.closing_rate)
             if not chk.ok:
                 # Another object's box: for every decision below, no box at all (the controller coasts, the
                 # target-lost clock runs, the close detector does not see it).

@@ -17,9 +17,10 @@ What each frame is made of, from the log alone:
 * phase: ``setpoints.csv``'s state on that ``t_frame`` (no row: the core did not command, ACQUIRE or the switch to
   OFFBOARD); events (``gate N engaged``, ``gate N close``, ``intercept: pulled up``) go to the frame whose detection
   row precedes them (the app logs the detection, steps the core, then logs its events);
-* used box: the detection (``valid``), minus what the target lock rejected (companion/targetlock.py re-run on the
-  engaged frames with the logged attitude, as companion/engagement.py runs it). It is judged as perceived, before
-  the engagement's completion of a box cut by the image border: the truth box is clipped to the image too.
+* used box: the detection (``valid``), minus what the app refused on the engaged frames (its target lock,
+  companion/targetlock.py, or verification): read from ``los.csv`` (the controller given "no box" for a valid
+  detection), or for older logs the lock re-run with the logged attitude. It is judged as perceived, before the
+  engagement's completion of a box cut by the image border: the truth box is clipped to the image too.
 
 A box is on the gate when its centre lies inside the true box grown by ``margin`` px on every side (engagetally's
 rule with a tolerance for the reconstruction; docs/verification-px4.md says how the default was chosen).
@@ -64,6 +65,7 @@ class FrameRow:
     q: np.ndarray  # PX4's attitude estimate at t (NED/FRD wxyz), what the app's lock used
     used: BoundingBox | None = None  # the box the engagement used (after the target lock)
     judged: bool = True  # False: too near the gate for the log's pose to place its box (neither right nor wrong)
+    refused: bool | None = None  # the app passed its controller no box for this valid one (los.csv "no box")
 
 
 def truth_box(cfg: Any, p_ned: np.ndarray, q_wxyz: np.ndarray, centre_ned: np.ndarray, normal_ned: np.ndarray,
@@ -123,6 +125,10 @@ def frames_of(flight: Flight, cfg: Any) -> list[FrameRow]:
     if "events" in flight.tables:
         ev = flight["events"]
         ev_t, ev_text = [float(x) for x in ev["t"]], [str(x) for x in ev["text"]]
+    refused_at: dict[float, bool] = {}
+    if "los" in flight.tables and "rejected" in flight["los"].columns:
+        lo = flight["los"]
+        refused_at = {float(tf): str(why) == "no box" for tf, why in zip(lo["t_frame"], lo["rejected"], strict=True)}
     vis = gate["visible"] if "visible" in gate.columns else np.ones(len(gate))
     n_gates = max(1, len(set(gate["k"].tolist()))) if "k" in gate.columns else 1
     gt = gate["t"]
@@ -156,13 +162,23 @@ def frames_of(flight: Flight, cfg: Any) -> list[FrameRow]:
             judged &= bool(np.linalg.norm(p - c) >= NEAR_RADII * radius)
             if vis[j] > 0:
                 truth = truth_box(cfg, p, draw_att.at(tf), c, n, radius, tf)
-        rows.append(FrameRow(tf, box, phase_at.get(tf, ""), events, truth, q, judged=judged))
+        refused = refused_at.get(tf) if box is not None else None
+        rows.append(FrameRow(tf, box, phase_at.get(tf, ""), events, truth, q, judged=judged, refused=refused))
     return rows
 
 
 def apply_lock(rows: list[FrameRow], cfg: Any) -> int:
-    """Set each row's used box: the perceived one, except on ENGAGE frames the target lock rejects (re-run as
-    companion/engagement.py runs it, on the box it sees: completed when cut by the border). Returns the rejections."""
+    """Set each row's used box: the perceived one, except on ENGAGE frames the app refused it (its target lock
+    or verification). The app's own decision where the log has it (los.csv: the controller was given no box for
+    a valid detection); for older logs the lock is re-run as companion/engagement.py runs it, on the box it
+    sees (completed when cut by the border), without the closing-speed filter those logs do not keep (its
+    v_max bound). Returns the rejections."""
+    if any(r.refused is not None for r in rows):
+        n = 0
+        for r in rows:
+            r.used = None if r.refused and r.phase == "ENGAGE" else r.box
+            n += r.used is None and r.box is not None
+        return n
     from companion.engagement import EngagementParams, complete_clipped_box
     from companion.targetlock import LockParams, TargetLock
 

@@ -151,6 +151,10 @@ class _Steering:
         self.imu: tuple[np.ndarray | None, float] | None = None  # (accelerometer FRD at capture, now), set per frame
 
     @property
+    def closing_rate(self) -> tuple[float, float] | None:
+        return None if self.kind == "baseline" else self.ctrl.closing_rate
+
+    @property
     def p(self) -> Any:
         """The PN controller's parameters (the core's hover estimate updates them); none for the baseline."""
         if self.kind == "baseline":

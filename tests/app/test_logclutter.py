@@ -219,3 +219,30 @@ def test_a_log_with_the_simulators_attitude_is_read_with_it(flight: Path, tmp_pa
     assert d["engagements"] == 1 and d["engaged_frames"] >= 20 and d["engaged_frames_wrong"] == 0, d
     (d,), _ = lc.report([str(with_truth_attitude(tmp_path / "yawed", 10.0))])
     assert d["begun_on_wrong"] == 1, d
+
+
+def test_the_apps_own_refusals_are_read_from_the_log(flight: Path, tmp_path: Path) -> None:
+    """The boxes the app refused (its lock or verification: los.csv's "no box" for a valid detection) are no box
+    to the tally, read from the log rather than re-run; a log without los.csv re-runs the lock."""
+    dst = tmp_path / "refused"
+    shutil.copytree(flight, dst)
+    with (dst / "detections.csv").open(newline="") as f:
+        valid = {float(r["t_frame"]) for r in csv.DictReader(f) if r["valid"] == "1"}
+    p = dst / "los.csv"
+    with p.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    marked = [r for r in rows if float(r["t_frame"]) in valid][::4]  # every 4th controller frame with a box
+    assert len(marked) >= 5
+    for r in marked:
+        r["rejected"] = "no box"
+    with p.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (base,), _ = lc.report([str(flight)])
+    (d,), _ = lc.report([str(dst)])
+    assert base["lock_rejected"] == 0 and d["lock_rejected"] == len(marked), (base["lock_rejected"], d)
+    assert d["engaged_frames"] == base["engaged_frames"] - len(marked), (base["engaged_frames"], d["engaged_frames"])
+    (dst / "los.csv").unlink()
+    (d,), _ = lc.report([str(dst)])
+    assert d["lock_rejected"] == 0 and d["engaged_frames"] == base["engaged_frames"]
