@@ -79,10 +79,14 @@ def truth_box(cfg: Any, p_ned: np.ndarray, q_wxyz: np.ndarray, centre_ned: np.nd
     return gate_box(PinholeCamera.from_config(cam_cfg), R_enu_cam, ned_to_enu(np.asarray(p_ned, float)), gate, t)
 
 
+class NoFrames(ValueError):
+    """A flight log without the rows to judge (e.g. the camera failed before its first frame)."""
+
+
 def _need(flight: Flight, *topics: str) -> None:
     missing = [t for t in topics if t not in flight.tables or len(flight.tables[t]) == 0]
     if missing:
-        raise ValueError(f"{flight.folder}: no {', '.join(missing)} rows (a synthetic-camera flight log is needed)")
+        raise NoFrames(f"{flight.folder}: no {', '.join(missing)} rows (a synthetic-camera flight log is needed)")
 
 
 def has_true_attitude(truth: Table) -> bool:
@@ -328,8 +332,23 @@ def _wrong(d: dict[str, Any]) -> bool:
     return bool(d["begun_on_wrong"] or d["engaged_frames_wrong"] or d["passes_claimed_wrong"])
 
 
-def report(paths: list[str], margin: float = MARGIN_PX) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    per = [clutter_of(f, margin) for f in flight_folders(paths)]
+def report(paths: list[str], margin: float = MARGIN_PX,
+           skipped: list[str] | None = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Every flight under ``paths`` judged, and the totals. Among several flights, one without frames to judge
+    (its camera failed before the first frame, say) is left out with its reason in ``skipped`` (counted as
+    ``runs_without_frames``) rather than ending the report; a single flight folder without them is an error."""
+    folders = flight_folders(paths)
+    per: list[dict[str, Any]] = []
+    reasons: list[str] = []
+    for f in folders:
+        try:
+            per.append(clutter_of(f, margin))
+        except NoFrames as e:
+            if len(folders) == 1:
+                raise
+            reasons.append(str(e))
+    if skipped is not None:
+        skipped += reasons
     tot = total([{k: v for k, v in d.items() if k not in ("through",)} for d in per])
     for k in ("engaged_on_gate_iou", "engaged_on_gate_centre_px"):
         tot.pop(k, None)
@@ -337,6 +356,7 @@ def report(paths: list[str], margin: float = MARGIN_PX) -> tuple[list[dict[str, 
     dists = np.array([x for d in per for x in d["engaged_on_gate_centre_px"]])
     q = (5, 50, 95, 99)
     tot["runs"] = len(per)
+    tot["runs_without_frames"] = len(reasons)
     tot["runs_through"] = sum(bool(d["through"]) for d in per)
     tot["runs_with_wrong"] = sum(_wrong(d) for d in per)
     tot["margin_px"] = margin
@@ -369,11 +389,14 @@ def register(lsub: Any) -> None:
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    skipped: list[str] = []
     try:
-        per, tot = report(args.folders, args.margin)
+        per, tot = report(args.folders, args.margin, skipped)
     except (FileNotFoundError, ValueError) as e:
         print(f"companion log clutter: {e}", file=sys.stderr)
         return 2
+    for why in skipped:
+        print(f"companion log clutter: left out: {why}", file=sys.stderr)
     if not per:
         print(f"companion log clutter: no finished flight folder (summary.json) under {' '.join(args.folders)}",
               file=sys.stderr)

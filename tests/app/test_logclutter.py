@@ -246,3 +246,20 @@ def test_the_apps_own_refusals_are_read_from_the_log(flight: Path, tmp_path: Pat
     (dst / "los.csv").unlink()
     (d,), _ = lc.report([str(dst)])
     assert d["lock_rejected"] == 0 and d["engaged_frames"] == base["engaged_frames"]
+
+
+def test_a_flight_without_frames_is_left_out_of_a_table_not_the_end_of_it(flight: Path, tmp_path: Path) -> None:
+    """An eval's flights: one whose camera failed before its first frame (a header-only detections.csv) is left
+    out with its reason, the others judged; named alone it is a one-line error."""
+    table = tmp_path / "flights"
+    shutil.copytree(flight, table / "run000" / flight.name)
+    bad = table / "run001" / flight.name
+    shutil.copytree(flight, bad)
+    det = bad / "detections.csv"
+    det.write_text(det.read_text().splitlines()[0] + "\n")
+    skipped: list[str] = []
+    per, tot = lc.report([str(table)], skipped=skipped)
+    assert len(per) == 1 and tot["runs"] == 1 and tot["runs_without_frames"] == 1
+    assert len(skipped) == 1 and str(bad) in skipped[0] and "no detections rows" in skipped[0], skipped
+    with pytest.raises(ValueError, match="no detections rows"):
+        lc.report([str(bad)])
