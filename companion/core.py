@@ -61,7 +61,9 @@ class FrameInput:
 @dataclass(frozen=True, slots=True)
 class CoreStep:
     decision: Decision
-    reset_tracker: bool = False  # a new engagement phase began (RECOVER): the tracker must drop the passed gate
+    # The tracker must drop its target: a new engagement phase began (RECOVER: the passed gate), or the engagement
+    # refused its box several frames in a row (it holds another object; EngagementParams.drop_tracker_after).
+    reset_tracker: bool = False
     passes_confirmed: int = 0
     hover: HoverEstimate | None = None  # a new hover-thrust estimate taken this step (for the log)
     hover_input: tuple[float, float] | None = None  # (commanded thrust, specific force up m/s^2) behind it
@@ -117,7 +119,8 @@ class FlightCore:
                 if self._hover_u is not None:
                     hover_input = (self._hover_u, a_up)
             hover = self._hover_update(inp.imu, d.setpoint.thrust, a_up)
-        return CoreStep(d, reset_tracker=d.changed and d.phase is Phase.RECOVER,
+        reset = (d.changed and d.phase is Phase.RECOVER) or self.engagement.drop_tracker
+        return CoreStep(d, reset_tracker=reset,
                         passes_confirmed=self.engagement.passes_confirmed, hover=hover,
                         hover_input=hover_input if hover is not None else None)
 

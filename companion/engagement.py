@@ -125,6 +125,11 @@ class EngagementParams:
     # PX4's SIH quad), the lock rejects the last sliver, and the gate was never "close" by either trigger: 11 of 32
     # SIH flights through the gate ended TARGET_LOST, the vehicle coasting tilted behind it for 1 s.
     near_window: float = 0.5  # s
+    # The engaged gate's boxes refused this many frames in a row (verification or lock): the tracker holds another
+    # object, and is told to drop it (``drop_tracker``; 0 = never). Perception hands over one box a frame; on real
+    # PX4 (x500, linear fast, runs 012 and 092 of a 100-run table) its track went to the ground below for 0.4-1.0 s
+    # while the gate stayed in view, the lock refused every box, and the engagement ended TARGET_LOST.
+    drop_tracker_after: int = 3
     pass_keeps_velocity: bool = True  # the pass cancels the measured drag (keeps the velocity) when it is known
     # A box edge this close to the image border is cut. A detector's edges are noisy (1 px in the simulator):
     # at 1 px a ring on the border was completed in one frame and not in the next, and its LOS jumped by tens of
@@ -208,6 +213,8 @@ class Engagement:
     verifier: TargetVerifier | None = None  # is a box the configured target (companion/verify.py); None = no check
     _unverified: bool = False  # the last box failed verification (one event per spell)
     _rejected_now: bool = False  # this frame's box was rejected (verification or lock): a box is in view
+    refused: int = 0  # ENGAGE frames in a row whose box was refused (verification or lock); frames without a box pass
+    drop_tracker: bool = False  # this step: the tracker holds another object (drop_tracker_after refusals): drop it
     used_box: BoundingBox | None = None  # the box this step's decisions used (None: none, or rejected)
     awaiting: bool = False  # a stable candidate waits for the operator's confirmation (app.engage confirm)
     _confirm: bool | None = None  # this step's confirmation (None: not needed)
@@ -276,9 +283,19 @@ class Engagement:
             self._rejecting = not chk.ok
         self._streak = self._streak + 1 if valid else 0
         self.used_box = box if valid else None  # what the decisions below saw (replay judges it against labels)
+        engaged = self.phase is Phase.ENGAGE
+        if engaged and self._rejected_now:
+            self.refused += 1
+        elif valid or not engaged:
+            self.refused = 0
+        k = p.drop_tracker_after
+        self.drop_tracker = self._rejected_now and engaged and k > 0 and self.refused % k == 0
         d = self._step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt, events)
         if lock_event:
             d = replace(d, events=(*d.events, lock_event))
+        if self.drop_tracker:
+            d = replace(d, events=(*d.events, f"gate {self.passes[-1].gate}: tracker told to drop its target (its box "
+                                               f"refused {self.refused} frames in a row)"))
         return d
 
     def _step(self, t: float, box: BoundingBox | None, valid: bool, q_wxyz_ned_frd: np.ndarray,

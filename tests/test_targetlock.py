@@ -7,6 +7,7 @@ engagement: a box of another object after a gap is no box (the controller coasts
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -229,3 +230,44 @@ def test_the_engagement_bounds_the_lock_with_its_closing_filter():
     eng, dec = run("guidance.closing_speed=fixed")
     assert eng.controller.closing_rate is None
     assert dec.control.mode == "pn" and not dec.events
+
+
+def test_the_tracker_is_told_to_drop_a_target_the_engagement_keeps_refusing():
+    """Real PX4, x500 (runs 012 and 092 of a 100-run table): perception's one box went to the ground while the gate
+    stayed in view, and the lock refused it for 0.4-1.0 s until TARGET_LOST. The core now tells the loop to reset
+    the tracker at every ``drop_tracker_after`` refusals in a row; frames without a box do not break the count, a
+    box taken does. Before the engagement (ACQUIRE) nothing is dropped."""
+    from companion.core import FlightCore, FrameInput
+
+    core = FlightCore.from_config(CFG)
+    k = core.engagement.params.drop_tracker_after
+    assert k == 3
+    t = 0.0
+
+    def step(b: BoundingBox | None):
+        nonlocal t
+        s = core.step(FrameInput(t, b, LEVEL, 10.0))
+        t += DT
+        return s
+
+    gate, ground = box(45.0, 309.0, 67.0), box(400.0, 330.0, 380.0)
+    assert not any(step(gate).reset_tracker for _ in range(CFG.app.acquire_frames))
+    assert core.phase is Phase.ENGAGE
+    resets = [step(b).reset_tracker for b in (ground, ground, None, ground)]
+    assert resets == [False, False, False, True]
+    s = step(ground)
+    assert not s.reset_tracker and core.engagement.refused == 4
+    assert step(gate).decision.control.mode == "pn" and core.engagement.refused == 0  # the gate again: taken
+    steps = [step(ground) for _ in range(6)]
+    assert [s.reset_tracker for s in steps] == [False, False, True, False, False, True]
+    ev = [e for e in steps[2].decision.events if "tracker told to drop" in e]
+    assert ev == ["gate 1: tracker told to drop its target (its box refused 3 frames in a row)"], ev
+    # drop_tracker_after 0: never.
+    eng = Engagement.from_config(CFG, PNController.from_config(CFG),
+                                 replace(EngagementParams.from_config(CFG), drop_tracker_after=0))
+    t = 0.0
+    for b in [gate] * CFG.app.acquire_frames + [ground] * 9:
+        eng.step(t, b, LEVEL, 10.0)
+        t += DT
+        assert not eng.drop_tracker
+    assert eng.phase is Phase.ENGAGE and eng.refused == 9
