@@ -137,6 +137,18 @@ def test_dot_method_is_the_matmul_operator() -> None:
     for n in (4, 9, 16, 40):  # the barometric window's slope
         a, b = RNG.normal(size=n), RNG.normal(size=n)
         assert float(a.dot(b)) == float(a @ b)
+    # The simulated camera's shapes: a transposed product, the rim basis through it, the rim samples, K's view.
+    K2T = np.array([[410.0, 0.0, 321.3], [0.0, 405.5, 238.7]])[:2, :2].T
+    for _ in range(500):
+        R, M, v = RNG.normal(size=(3, 3)), RNG.normal(size=(3, 3)), RNG.normal(size=3)
+        Rc = (R @ M).T
+        assert Rc.tobytes() == R.dot(M).T.tobytes() and (Rc @ v).tobytes() == Rc.dot(v).tobytes()
+        ab = RNG.normal(size=(2, 3))
+        assert (ab @ Rc.T).tobytes() == ab.dot(Rc.T).tobytes()
+        for n in (32, 128):
+            cs = RNG.normal(size=(n, 2))
+            assert (cs @ ab).tobytes() == cs.dot(ab).tobytes()
+            assert (cs @ K2T).tobytes() == cs.dot(K2T).tobytes()
 
 
 def test_flat_reshaped_rotation_is_the_nested_one() -> None:
