@@ -25,7 +25,7 @@ import numpy as np
 
 from companion import guidance
 from companion.closing import ClosingParams, ClosingSpeedEstimator
-from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu
+from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu, swap_ned_enu_xyz
 from companion.guidance import GuidanceParams, Setpoint
 from companion.ownmotion import OwnMotion
 from perception.fastinit import fast_init
@@ -185,6 +185,7 @@ class PNController:
         if self._kf is not None:
             self._kf.reset()
         self._l_prev: np.ndarray | None = None  # filtered LOS (ENU) of the last used frame
+        self._l_prev_xyz: tuple[float, float, float] | None = None  # the same as floats (None with it)
         self._t_prev: float | None = None
         self._t_last: float | None = None  # time of the last step, used or not
         self._jumps = 0
@@ -223,7 +224,7 @@ class PNController:
         if rejected is None:
             assert box is not None
             l_ned = R_ned_frd.dot(self.camera.ray_body(box.cx, box.cy))
-            l_enu = swap_ned_enu(l_ned)
+            l_enu = swap_ned_enu_xyz(*l_ned.tolist())  # floats: the LOS checks and filter run on floats
             rejected = self._jump(t, l_enu)
             if rejected is None:
                 self._closing_speed(t, box, R_ned_frd, accel_frd)
@@ -276,14 +277,14 @@ class PNController:
             return f"invalid box ({box.cx}, {box.cy}, {box.w}, {box.h})"
         return None
 
-    def _jump(self, t: float, l_enu: np.ndarray) -> str | None:
+    def _jump(self, t: float, l_enu: tuple[float, float, float]) -> str | None:
         """A LOS that moved faster than max_los_rate since the last used frame is a jump, unless it persists."""
-        if self._l_prev is None or self._t_prev is None:
+        if self._l_prev_xyz is None or self._t_prev is None:
             return None
         dt = t - self._t_prev
         if dt > self.p.max_dt:
             return None  # long gap: the filter restarts anyway
-        angle = guidance.angle_between(l_enu, self._l_prev)
+        angle = guidance.angle_between(l_enu, self._l_prev_xyz)
         if angle / dt <= self.p.max_los_rate:
             self._jumps = 0
             return None
@@ -294,7 +295,7 @@ class PNController:
             self._filter.reset()
             if self._kf is not None:
                 self._kf.reset()
-            self._l_prev = None
+            self._l_prev = self._l_prev_xyz = None
             self._w = None
             if self._closing is not None:
                 self._closing.reset()
@@ -383,9 +384,12 @@ class PNController:
                                      min(self.p.gamma_min, gp.gamma_bar))
         return gp if g >= gp.gamma_bar else guidance.with_gamma_bar(gp, g)
 
-    def _pn(self, t: float, l_enu: np.ndarray, R_ned_frd: np.ndarray, box: BoundingBox | None = None) -> ControlOutput:
+    def _pn(self, t: float, l_enu: tuple[float, float, float], R_ned_frd: np.ndarray,
+            box: BoundingBox | None = None) -> ControlOutput:
         dt = t - self._t_prev if self._t_prev is not None else 0.0
         rejected = None
+        # The filtered LOS as floats (lf, for the scalar math) and as an array (l_f, for numpy's dot products and
+        # the output): the same values.
         if self._kf is not None:
             # The Kalman filter gives the LOS and its rate; a gated box leaves its prediction (PN goes on).
             size = max(box.w, box.h) if box is not None else 0.0
@@ -393,17 +397,19 @@ class PNController:
             # The LOS accelerates more as the gate nears (~1/range^2): optionally more process noise for a bigger box.
             w0 = self.p.kalman_accel_width
             acc = self._kf.p.accel_std * (1.0 + size / w0) if w0 > 0.0 else None
-            if not self._kf.update(t, l_enu, sigma, acc):
+            if not self._kf.update(t, np.array(l_enu), sigma, acc):
                 rejected = f"innovation gate ({self._kf.last_nis:.1f} sigma)"
             assert self._kf.l is not None
             l_f = self._kf.l.copy()
-            lambda_dot, n = self._smooth_rate(l_f, self._kf.rate, dt)
+            lf = tuple(l_f.tolist())
+            lambda_dot, n = self._smooth_rate(lf, self._kf.rate, dt)
         else:
-            l_f = self._filter.update(t, l_enu)
-            w_xyz = guidance.los_rate_vector(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
-            lambda_dot, n = self._smooth_rate(l_f, w_xyz, dt)
+            lf = self._filter.update_xyz(t, *l_enu)
+            l_f = np.array(lf)  # a new array, never changed in place: kept as _l_prev below without a copy
+            w_xyz = guidance.los_rate_vector(lf, self._l_prev_xyz if dt <= self.p.max_dt else None, dt)
+            lambda_dot, n = self._smooth_rate(lf, w_xyz, dt)
         self._lam = lambda_dot
-        l_sol = l_f
+        l_sol: Vec3 = lf
         if self.p.delay_prediction:
             l_sol, lambda_dot, n = self._predict_state(t, l_f, lambda_dot, n)
         elif self.p.delay_compensation:
@@ -414,7 +420,7 @@ class PNController:
         # The PN frame's y axis of the filtered LOS and the measured drag along it: only the drag terms below use
         # them (computed once, when there is a drag estimate). Element-wise math in floats from here (the same
         # operations as the array expressions, bit for bit).
-        y_pn = _y_pn(l_f) if self._drag is not None else None
+        y_pn = _y_pn(lf) if self._drag is not None else None
         drag_y = float(self._drag.dot(y_pn)) if self._drag is not None and y_pn is not None else 0.0
         if y_pn is not None and self.p.drag_compensation > 0.0:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
@@ -424,7 +430,7 @@ class PNController:
             (ax, ay, az), (yx, yy, yz) = a_n.tolist(), y_pn.tolist()
             a_n = np.array([ax - c * yx, ay - c * yy, az - c * yz])  # a_n - c y_pn
         sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
-        self._l_prev, self._t_prev = l_f.copy(), t
+        self._l_prev, self._l_prev_xyz, self._t_prev = l_f, lf, t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
@@ -436,10 +442,10 @@ class PNController:
                 nx, ny, nz = nx + drag_y * yx, ny + drag_y * yy, nz + drag_y * yz
             self._note_command((nx, ny, nz))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", swap_ned_enu(l_f), lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
-                             v_rel)
+        return ControlOutput(t, sp, "pn", np.array(swap_ned_enu_xyz(*lf)), lambda_dot, a_n, sol.demand_scale,
+                             sol.f_th, rejected, v_rel)
 
-    def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray | tuple[float, float, float],
+    def _smooth_rate(self, l_f: tuple[float, float, float], w: np.ndarray | tuple[float, float, float],
                      dt: float) -> tuple[float, tuple[float, float, float]]:
         """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies
         pixel noise, and k_PN v_rel_bar (~30 m/s) turns it into thrust jitter. Kept normal to the LOS."""
@@ -451,7 +457,7 @@ class PNController:
                 beta = 1.0 - math.exp(-2.0 * math.pi * self._rate_cutoff() * dt)
                 ox, oy, oz = self._w
                 wx, wy, wz = ox + beta * (wx - ox), oy + beta * (wy - oy), oz + beta * (wz - oz)
-                lx, ly, lz = l_f.tolist()
+                lx, ly, lz = l_f
                 d = wx * lx + wy * ly + wz * lz
                 wx, wy, wz = wx - d * lx, wy - d * ly, wz - d * lz
                 self._w = (wx, wy, wz)
@@ -490,10 +496,10 @@ class PNController:
                              rejected)
 
     @staticmethod
-    def _y_ref(l_enu: np.ndarray, R_ned_frd: np.ndarray) -> np.ndarray | None:
+    def _y_ref(l_enu: Vec3, R_ned_frd: np.ndarray) -> np.ndarray | None:
         """The solver's y_ref: pn_frame reads it only at a vertical LOS (its own test, ``hypot(l_x, l_y) <= 1e-9``),
         so elsewhere it is not built (a slice, a matmul and a negation every frame)."""
-        lx, ly, _ = l_enu.tolist()
+        lx, ly, _ = l_enu.tolist() if isinstance(l_enu, np.ndarray) else l_enu
         return None if math.hypot(lx, ly) > 1e-9 else PNController._body_y_enu(R_ned_frd)
 
     @staticmethod
@@ -504,9 +510,9 @@ class PNController:
 
 
 
-def _y_pn(l_enu: np.ndarray) -> np.ndarray | None:
+def _y_pn(l_enu: tuple[float, float, float]) -> np.ndarray | None:
     """The PN frame's y axis (``e_z x l`` normalised: horizontal, normal to the LOS), None at a vertical LOS."""
-    lx, ly, _ = l_enu.tolist()
+    lx, ly, _ = l_enu
     h = math.hypot(lx, ly)
     return np.array([-ly / h, lx / h, 0.0]) if h > 1e-6 else None
 

@@ -69,6 +69,7 @@ DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 
 g_W = np.array([0.0, 0.0, -G])
 
 _EPS = 1e-12
+Vec3 = np.ndarray | tuple[float, float, float]  # a 3-vector: an array, or three floats on the per-frame path
 _UPTILT_EPS = 1e-12  # rad: below, the camera counts as along body x (the closed form; subnormal sines underflow)
 _ENU_TO_NED_ROWS = [1, 0, 2]
 _NED_FRD_SIGNS = np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])  # row signs of P_NED_ENU x column signs of F_FRD_FLU
@@ -121,9 +122,9 @@ class ThrustAttitude:
 
 
 def angle_between(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle between two vectors, accurate for small and large angles alike."""
-    ax, ay, az = a.tolist()
-    bx, by, bz = b.tolist()
+    """Angle between two vectors (arrays or float triples), accurate for small and large angles alike."""
+    ax, ay, az = a.tolist() if isinstance(a, np.ndarray) else a
+    bx, by, bz = b.tolist() if isinstance(b, np.ndarray) else b
     cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
     return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
 
@@ -149,13 +150,13 @@ def los_rate(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> LosRate:  #
     return LosRate(angle / dt, np.array([kx, ky, kz]), n)
 
 
-def los_rate_vector(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> tuple[float, float, float]:  # noqa: E741
+def los_rate_vector(l: Vec3, l_prev: Vec3 | None, dt: float) -> tuple[float, float, float]:  # noqa: E741
     """``lambda_dot * n`` of :func:`los_rate` as three floats, the same operations bit for bit (the controller's
-    per-frame path: no LosRate and no arrays)."""
+    per-frame path: no LosRate and no arrays; ``l`` and ``l_prev`` arrays or float triples)."""
     if l_prev is None or not (dt > 0.0) or not math.isfinite(dt):
         return 0.0, 0.0, 0.0
-    lx, ly, lz = l.tolist()
-    px, py, pz = l_prev.tolist()
+    lx, ly, lz = l.tolist() if isinstance(l, np.ndarray) else l
+    px, py, pz = l_prev.tolist() if isinstance(l_prev, np.ndarray) else l_prev
     kx, ky, kz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px
     s = math.sqrt(kx * kx + ky * ky + kz * kz)
     if s < _EPS:
@@ -192,9 +193,9 @@ def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # n
     return np.array(_pn_frame_rows(l, y_ref))
 
 
-def _pn_frame_rows(l: np.ndarray, y_ref: np.ndarray | None = None) -> list[list[float]]:  # noqa: E741
-    """:func:`pn_frame` as nested lists of floats (rows), for the solver's scalar math."""
-    lx, ly, lz = l.tolist()
+def _pn_frame_rows(l: Vec3, y_ref: np.ndarray | None = None) -> list[list[float]]:  # noqa: E741
+    """:func:`pn_frame` as nested lists of floats (rows), for the solver's scalar math (``l`` an array or floats)."""
+    lx, ly, lz = l.tolist() if isinstance(l, np.ndarray) else l
     ny = math.hypot(lx, ly)
     if ny > 1e-9:
         yx, yy, yz = -ly / ny, lx / ny, 0.0  # e_z x l, normalised
@@ -527,7 +528,7 @@ def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
     return np.array((cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(3, 3)  # flat: cheaper
 
 
-def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
+def solve(l: Vec3, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
     """Closed-form optimum of eq:meth_optimization_problem_simplified with the flight envelope, and saturation.
 
     With ``t = s a_n^PN - g^PN`` normal to the LOS, the thrust along the LOS ``t_x = f sin(phi) cos(theta)`` is
@@ -535,7 +536,8 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
     tilt bound this is the paper's ``f_th* = min(f_max, (n_z a_n - g_z^PN) / cos(gamma_bar))`` for ``fov="paper"``
     and ``min(f_max, hypot(t_y, t_z / cos(gamma_bar)))`` for the exact bound). Then
     ``f_th* = |t|``, ``phi* = atan2(t_x, t_z)``, ``theta* = atan2(-t_y, hypot(t_x, t_z))``,
-    ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world).
+    ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS (an array or three floats),
+    ``a_n`` the PN demand (world).
     """
     rows = _pn_frame_rows(l, y_ref)
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
@@ -609,9 +611,9 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
     """The one conversion from the paper's frames (ENU/FLU) to a MAVSDK setpoint (NED/FRD)."""
     # = P_NED_ENU @ R_W_B @ F_FRD_FLU = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS, without two matmuls; in floats
-    # (x * 1.0 and x * -1.0 exactly as numpy's elementwise product, signed zeros included).
+    # (x * 1.0 is x and x * -1.0 is -x, exactly as numpy's elementwise product, signed zeros included).
     (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
-    rows = ((b0 * 1.0, b1 * -1.0, b2 * -1.0), (a0 * 1.0, a1 * -1.0, a2 * -1.0), (c0 * -1.0, c1 * 1.0, c2 * 1.0))
+    rows = ((b0, -b1, -b2), (a0, -a1, -a2), (-c0, c1, c2))
     roll, pitch, yaw = euler_ned_deg_from_rows(rows)
     R = np.array((*rows[0], *rows[1], *rows[2])).reshape(3, 3)  # flat, then reshaped: cheaper than nested
     return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R)
