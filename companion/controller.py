@@ -416,34 +416,33 @@ class PNController:
             lambda_dot, n = self._predict_rate(t, l_f, lambda_dot, n)
         gp = self.p.guidance
         v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
-        a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, v_rel)
+        ax, ay, az = guidance.pn_demand_xyz(lambda_dot, n, gp.k_pn, v_rel)
         # The PN frame's y axis of the filtered LOS and the measured drag along it: only the drag terms below use
         # them (computed once, when there is a drag estimate). Element-wise math in floats from here (the same
-        # operations as the array expressions, bit for bit).
-        y_pn = _y_pn(lf) if self._drag is not None else None
-        drag_y = float(self._drag.dot(y_pn)) if self._drag is not None and y_pn is not None else 0.0
-        if y_pn is not None and self.p.drag_compensation > 0.0:
+        # operations as the array expressions, bit for bit); the drag's dot product stays numpy's.
+        y_xyz = _y_pn_xyz(lf) if self._drag is not None else None
+        drag_y = float(self._drag.dot(np.array(y_xyz))) if self._drag is not None and y_xyz is not None else 0.0
+        if y_xyz is not None and self.p.drag_compensation > 0.0:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
             # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
             # accelerometer misses drag along the thrust axis, so the vertical normal part is not trusted.)
             c = self.p.drag_compensation * drag_y
-            (ax, ay, az), (yx, yy, yz) = a_n.tolist(), y_pn.tolist()
-            a_n = np.array([ax - c * yx, ay - c * yy, az - c * yz])  # a_n - c y_pn
-        sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
+            yx, yy, yz = y_xyz
+            ax, ay, az = ax - c * yx, ay - c * yy, az - c * yz  # a_n - c y_pn
+        sol = guidance.solve(l_sol, (ax, ay, az), self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
         self._l_prev, self._l_prev_xyz, self._t_prev = l_f, lf, t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
             s = sol.demand_scale
-            ax, ay, az = a_n.tolist()
             nx, ny, nz = s * ax, s * ay, s * az
-            if y_pn is not None:
-                yx, yy, yz = y_pn.tolist()
+            if y_xyz is not None:
+                yx, yy, yz = y_xyz
                 nx, ny, nz = nx + drag_y * yx, ny + drag_y * yy, nz + drag_y * yz
             self._note_command((nx, ny, nz))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", np.array(swap_ned_enu_xyz(*lf)), lambda_dot, a_n, sol.demand_scale,
-                             sol.f_th, rejected, v_rel)
+        return ControlOutput(t, sp, "pn", np.array(swap_ned_enu_xyz(*lf)), lambda_dot, np.array((ax, ay, az)),
+                             sol.demand_scale, sol.f_th, rejected, v_rel)
 
     def _smooth_rate(self, l_f: tuple[float, float, float], w: np.ndarray | tuple[float, float, float],
                      dt: float) -> tuple[float, tuple[float, float, float]]:
@@ -510,11 +509,11 @@ class PNController:
 
 
 
-def _y_pn(l_enu: tuple[float, float, float]) -> np.ndarray | None:
+def _y_pn_xyz(l_enu: tuple[float, float, float]) -> tuple[float, float, float] | None:
     """The PN frame's y axis (``e_z x l`` normalised: horizontal, normal to the LOS), None at a vertical LOS."""
     lx, ly, _ = l_enu
     h = math.hypot(lx, ly)
-    return np.array([-ly / h, lx / h, 0.0]) if h > 1e-6 else None
+    return (-ly / h, lx / h, 0.0) if h > 1e-6 else None
 
 
 def half_fov(camera: CameraModel) -> float:

@@ -179,9 +179,14 @@ def with_gamma_bar(p: GuidanceParams, gamma_bar: float) -> GuidanceParams:
 def pn_demand(lambda_dot: float, n: np.ndarray | tuple[float, float, float], k_pn: float,
               v_rel_bar: float) -> np.ndarray:
     """eq:meth_pn_guidance_law: ``a_n = k_PN * v_rel_bar * lambda_dot * n`` (``n`` an array or three floats)."""
+    return np.array(pn_demand_xyz(lambda_dot, n, k_pn, v_rel_bar))
+
+
+def pn_demand_xyz(lambda_dot: float, n: Vec3, k_pn: float, v_rel_bar: float) -> tuple[float, float, float]:
+    """:func:`pn_demand` as three floats (the array product's values, without its cost)."""
     g = k_pn * v_rel_bar * lambda_dot
-    nx, ny, nz = n.tolist() if isinstance(n, np.ndarray) else n  # the array product's values, without its cost
-    return np.array([g * nx, g * ny, g * nz])
+    nx, ny, nz = n.tolist() if isinstance(n, np.ndarray) else n
+    return g * nx, g * ny, g * nz
 
 
 def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # noqa: E741
@@ -528,7 +533,7 @@ def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
     return np.array((cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(3, 3)  # flat: cheaper
 
 
-def solve(l: Vec3, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
+def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
     """Closed-form optimum of eq:meth_optimization_problem_simplified with the flight envelope, and saturation.
 
     With ``t = s a_n^PN - g^PN`` normal to the LOS, the thrust along the LOS ``t_x = f sin(phi) cos(theta)`` is
@@ -537,12 +542,12 @@ def solve(l: Vec3, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None 
     and ``min(f_max, hypot(t_y, t_z / cos(gamma_bar)))`` for the exact bound). Then
     ``f_th* = |t|``, ``phi* = atan2(t_x, t_z)``, ``theta* = atan2(-t_y, hypot(t_x, t_z))``,
     ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS (an array or three floats),
-    ``a_n`` the PN demand (world).
+    ``a_n`` the PN demand (world; an array or three floats).
     """
     rows = _pn_frame_rows(l, y_ref)
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
     R_W_PN = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
-    ax, ay, az = a_n.tolist()
+    ax, ay, az = a_n.tolist() if isinstance(a_n, np.ndarray) else a_n
     (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
     g_y, g_z = -G * yz, -G * zz  # g^PN = R_W^PN g: its y part is 0 unless the LOS is vertical
