@@ -130,12 +130,13 @@ class PNController:
 
     @classmethod
     def from_config(cls, cfg: Config) -> PNController:
-        camera = CameraModel.from_config(cfg.camera)
+        # runtime import: config is a type-only import here
+        from companion.config import camera_model, camera_uptilt
+
+        camera = camera_model(cfg.camera)  # built once per camera section (a simulated run builds a controller)
         # A camera pitched up (about body y only) is part of the exact FOV bound (GuidanceParams.uptilt). Any
         # other mount: the solver bounds the angle between the LOS and body x, and a camera tilted off body x by
         # delta keeps the LOS within gamma_bar of the optical axis only if we ask for gamma_bar - delta.
-        from companion.config import camera_uptilt  # runtime import: config is a type-only import here
-
         uptilt = camera_uptilt(cfg)
         misalign = 0.0 if uptilt is not None else math.acos(max(-1.0, min(1.0, float(camera.optical_axis_body[0]))))
         gp = GuidanceParams(
