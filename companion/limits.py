@@ -17,10 +17,12 @@ import numpy as np
 
 from companion.config_app import AppConfig, SafetyConfig
 from companion.reasons import Reason
+from perception.fastinit import fast_init
 from perception.types import BoundingBox
 
 
-@dataclass(frozen=True)
+@fast_init  # one a frame: the slot-descriptor __init__ (perception/fastinit.py)
+@dataclass(frozen=True, slots=True)
 class CloseEstimate:
     size_frac: float  # larger box side / image width
     ttc: float  # s; inf when the box is not growing
