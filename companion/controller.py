@@ -185,8 +185,9 @@ class PNController:
         self._filter.reset()
         if self._kf is not None:
             self._kf.reset()
-        self._l_prev: np.ndarray | None = None  # filtered LOS (ENU) of the last used frame
-        self._l_prev_xyz: tuple[float, float, float] | None = None  # the same as floats (None with it)
+        # Filtered LOS (ENU) of the last used frame, as floats: an array of it is made only where numpy's dot
+        # product needs one (_l_prev_array).
+        self._l_prev_xyz: tuple[float, float, float] | None = None
         self._t_prev: float | None = None
         self._t_last: float | None = None  # time of the last step, used or not
         self._jumps = 0
@@ -202,7 +203,11 @@ class PNController:
 
     @property
     def has_los(self) -> bool:
-        return self._l_prev is not None
+        return self._l_prev_xyz is not None
+
+    def _l_prev_array(self) -> np.ndarray:
+        assert self._l_prev_xyz is not None
+        return np.array(self._l_prev_xyz)
 
     @property
     def drag_enu(self) -> np.ndarray | None:
@@ -259,10 +264,10 @@ class PNController:
             return
         u = None
         d = est.range
-        if accel_frd is not None and self._l_prev is not None and d is not None:
+        if accel_frd is not None and self._l_prev_xyz is not None and d is not None:
             # Range acceleration explained by our own motion: -a . l + d lambda_dot^2 (gate assumed unaccelerated).
             a_ned = R_ned_frd.dot(np.asarray(accel_frd, dtype=float)) + np.array([0.0, 0.0, guidance.G])
-            u = -float(swap_ned_enu(a_ned).dot(self._l_prev)) + d * self._lam * self._lam
+            u = -float(swap_ned_enu(a_ned).dot(self._l_prev_array())) + d * self._lam * self._lam
         est.update(t, box, u)
 
     # -- internals -------------------------------------------------------------------------
@@ -296,7 +301,7 @@ class PNController:
             self._filter.reset()
             if self._kf is not None:
                 self._kf.reset()
-            self._l_prev = self._l_prev_xyz = None
+            self._l_prev_xyz = None
             self._w = None
             if self._closing is not None:
                 self._closing.reset()
@@ -309,7 +314,7 @@ class PNController:
         if t is not None:
             self._own.note(t, a)
 
-    def _predict_rate(self, t: float, l_f: np.ndarray, lam: float,
+    def _predict_rate(self, t: float, lf: tuple[float, float, float], lam: float,
                       n: Vec3) -> tuple[float, Vec3]:
         """The LOS rate now, not at capture: ``dl/dt = v_rel_normal / d``, so our own velocity change since the
         capture, ``dv``, moves it by ``-dv_normal / d`` (d from the closing-speed range). The gate's own
@@ -319,13 +324,14 @@ class PNController:
         if d is None or d <= 0.5 or t_now is None or not self._own:
             return lam, n
         dv = self._own.dv(t - self.p.own_delay, t_now - self.p.own_delay)  # a command acts own_delay later
+        l_f = np.array(lf)
         dv = dv - float(dv.dot(l_f)) * l_f
         w = lam * np.asarray(n, dtype=float) - dv / d
         lp = math.sqrt(w.dot(w))
         return lp, (w / lp if lp > 0.0 else np.zeros(3))
 
-    def _predict_state(self, t: float, l_f: np.ndarray, lam: float,
-                       n: Vec3) -> tuple[np.ndarray, float, Vec3]:
+    def _predict_state(self, t: float, l_f: tuple[float, float, float], lam: float,
+                       n: Vec3) -> tuple[Vec3, float, Vec3]:
         """The LOS and LOS rate now, not at capture: the relative position ``r = d l`` and velocity
         ``v = d_dot l + d lambda_dot n`` (range and range rate from the closing-speed filter) propagated through
         the frame's age at constant relative velocity, less our own velocity change (delay_compensation). For an
@@ -342,7 +348,7 @@ class PNController:
         tau = t_now - t
         # Element-wise parts in floats (the same operations as the array expressions, bit for bit); arrays only
         # where numpy's dot products must give their own rounding.
-        (lx, ly, lz), (nx, ny, nz) = l_f.tolist(), (n.tolist() if isinstance(n, np.ndarray) else n)
+        (lx, ly, lz), (nx, ny, nz) = l_f, (n.tolist() if isinstance(n, np.ndarray) else n)
         dl = d * lam
         vx, vy, vz = d_dot * lx + dl * nx, d_dot * ly + dl * ny, d_dot * lz + dl * nz  # v = d_dot l + d lam n
         rx, ry, rz = d * lx + vx * tau, d * ly + vy * tau, d * lz + vz * tau  # r = d l + v tau
@@ -353,7 +359,7 @@ class PNController:
             vx, vy, vz = vx - dvx, vy - dvy, vz - dvz
         r = np.array([rx, ry, rz])
         d2 = math.sqrt(r.dot(r))
-        if not (d2 > 1e-6) or float(r.dot(l_f)) <= 0.0:
+        if not (d2 > 1e-6) or float(r.dot(np.array(l_f))) <= 0.0:
             return l_f, lam, n  # predicted past the gate: the frame says nothing about now
         l2x, l2y, l2z = rx / d2, ry / d2, rz / d2
         l2 = np.array([l2x, l2y, l2z])
@@ -389,8 +395,7 @@ class PNController:
             box: BoundingBox | None = None) -> ControlOutput:
         dt = t - self._t_prev if self._t_prev is not None else 0.0
         rejected = None
-        # The filtered LOS as floats (lf, for the scalar math) and as an array (l_f, for numpy's dot products and
-        # the output): the same values.
+        # The filtered LOS as floats (lf); arrays of it only where numpy's dot products need them, and the output.
         if self._kf is not None:
             # The Kalman filter gives the LOS and its rate; a gated box leaves its prediction (PN goes on).
             size = max(box.w, box.h) if box is not None else 0.0
@@ -401,20 +406,18 @@ class PNController:
             if not self._kf.update(t, np.array(l_enu), sigma, acc):
                 rejected = f"innovation gate ({self._kf.last_nis:.1f} sigma)"
             assert self._kf.l is not None
-            l_f = self._kf.l.copy()
-            lf = tuple(l_f.tolist())
+            lf = tuple(self._kf.l.tolist())
             lambda_dot, n = self._smooth_rate(lf, self._kf.rate, dt)
         else:
             lf = self._filter.update_xyz(t, *l_enu)
-            l_f = np.array(lf)  # a new array, never changed in place: kept as _l_prev below without a copy
             w_xyz = guidance.los_rate_vector(lf, self._l_prev_xyz if dt <= self.p.max_dt else None, dt)
             lambda_dot, n = self._smooth_rate(lf, w_xyz, dt)
         self._lam = lambda_dot
         l_sol: Vec3 = lf
         if self.p.delay_prediction:
-            l_sol, lambda_dot, n = self._predict_state(t, l_f, lambda_dot, n)
+            l_sol, lambda_dot, n = self._predict_state(t, lf, lambda_dot, n)
         elif self.p.delay_compensation:
-            lambda_dot, n = self._predict_rate(t, l_f, lambda_dot, n)
+            lambda_dot, n = self._predict_rate(t, lf, lambda_dot, n)
         gp = self.p.guidance
         v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
         ax, ay, az = guidance.pn_demand_xyz(lambda_dot, n, gp.k_pn, v_rel)
@@ -431,7 +434,7 @@ class PNController:
             yx, yy, yz = y_xyz
             ax, ay, az = ax - c * yx, ay - c * yy, az - c * yz  # a_n - c y_pn
         sol = guidance.solve(l_sol, (ax, ay, az), self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
-        self._l_prev, self._l_prev_xyz, self._t_prev = l_f, lf, t
+        self._l_prev_xyz, self._t_prev = lf, t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
@@ -484,15 +487,16 @@ class PNController:
 
     def _no_box(self, t: float, R_ned_frd: np.ndarray, rejected: str) -> ControlOutput:
         zero = np.zeros(3)
-        if self._l_prev is None:
+        if self._l_prev_xyz is None:
             _, _, yaw = euler_ned_deg_from_R(R_ned_frd)
             sp = guidance.hover_setpoint(yaw, self.p.hover_thrust)
             return ControlOutput(t, sp, "hover", None, 0.0, zero, 0.0, guidance.G, rejected)
         # Coast: keep flying along the last inertial LOS with no PN demand until the box returns
         # (the app's safety layer decides when "lost" becomes an abort).
-        sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._y_ref(self._l_prev, R_ned_frd))
+        l_prev = self._l_prev_xyz
+        sol = guidance.solve(l_prev, zero, self._gamma(None), y_ref=self._y_ref(l_prev, R_ned_frd))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "coast", swap_ned_enu(self._l_prev), 0.0, zero, sol.demand_scale, sol.f_th,
+        return ControlOutput(t, sp, "coast", np.array(swap_ned_enu_xyz(*l_prev)), 0.0, zero, sol.demand_scale, sol.f_th,
                              rejected)
 
     @staticmethod
