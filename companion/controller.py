@@ -196,7 +196,8 @@ class PNController:
         self._latency = 0.0  # age of the last frame when it reached us, s
         self._t_now: float | None = None  # the caller's time now (frame arrival), when given
         self._own = OwnMotion(self.p.own_lag, self.p.own_drag_rate)  # our commands since a frame (delay prediction)
-        self._drag: np.ndarray | None = None  # filtered aerodynamic acceleration (ENU), from the accelerometer
+        # Filtered aerodynamic acceleration (ENU) from the accelerometer, as floats (element-wise filter math).
+        self._drag: tuple[float, float, float] | None = None
         self._t_drag: float | None = None
         if self._closing is not None:
             self._closing.reset()
@@ -213,7 +214,7 @@ class PNController:
     def drag_enu(self) -> np.ndarray | None:
         """The filtered aerodynamic acceleration (world ENU, m/s^2) the accelerometer measured, or None (no
         accelerometer given, or drag_compensation off). The straight pass cancels it."""
-        return None if self._drag is None else self._drag.copy()
+        return None if self._drag is None else np.array(self._drag)
 
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray,
              accel_frd: np.ndarray | None = None, t_now: float | None = None) -> ControlOutput:
@@ -249,12 +250,16 @@ class PNController:
         ax, ay = float(accel_frd[0]), float(accel_frd[1])
         if not (math.isfinite(ax) and math.isfinite(ay)):
             return
-        d = swap_ned_enu(R_ned_frd[:, 0] * ax + R_ned_frd[:, 1] * ay)
+        # R[:, 0] ax + R[:, 1] ay and the low-pass in floats: numpy's element-wise products and sums, the same
+        # bits, without ~8 array operations a frame.
+        (r00, r01, _), (r10, r11, _), (r20, r21, _) = R_ned_frd.tolist()
+        dx, dy, dz = swap_ned_enu_xyz(r00 * ax + r01 * ay, r10 * ax + r11 * ay, r20 * ax + r21 * ay)
         if self._drag is None or self._t_drag is None or not (0.0 < t - self._t_drag <= self.p.max_dt):
-            self._drag = d
+            self._drag = (dx, dy, dz)
         else:
             beta = 1.0 - math.exp(-2.0 * math.pi * self.p.drag_cutoff_hz * (t - self._t_drag))
-            self._drag = self._drag + beta * (d - self._drag)
+            ox, oy, oz = self._drag
+            self._drag = (ox + beta * (dx - ox), oy + beta * (dy - oy), oz + beta * (dz - oz))
         self._t_drag = t
 
     def _closing_speed(self, t: float, box: BoundingBox | None, R_ned_frd: np.ndarray,
@@ -266,8 +271,9 @@ class PNController:
         d = est.range
         if accel_frd is not None and self._l_prev_xyz is not None and d is not None:
             # Range acceleration explained by our own motion: -a . l + d lambda_dot^2 (gate assumed unaccelerated).
-            a_ned = R_ned_frd.dot(np.asarray(accel_frd, dtype=float)) + np.array([0.0, 0.0, guidance.G])
-            u = -float(swap_ned_enu(a_ned).dot(self._l_prev_array())) + d * self._lam * self._lam
+            x, y, z = R_ned_frd.dot(np.asarray(accel_frd, dtype=float)).tolist()
+            a_enu = np.array(swap_ned_enu_xyz(x + 0.0, y + 0.0, z + guidance.G))  # + [0, 0, g], element-wise
+            u = -float(a_enu.dot(self._l_prev_array())) + d * self._lam * self._lam
         est.update(t, box, u)
 
     # -- internals -------------------------------------------------------------------------
@@ -425,7 +431,8 @@ class PNController:
         # them (computed once, when there is a drag estimate). Element-wise math in floats from here (the same
         # operations as the array expressions, bit for bit); the drag's dot product stays numpy's.
         y_xyz = _y_pn_xyz(lf) if self._drag is not None else None
-        drag_y = float(self._drag.dot(np.array(y_xyz))) if self._drag is not None and y_xyz is not None else 0.0
+        drag_y = (float(np.array(self._drag).dot(np.array(y_xyz))) if self._drag is not None and y_xyz is not None
+                  else 0.0)
         if y_xyz is not None and self.p.drag_compensation > 0.0:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
             # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
