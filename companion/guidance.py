@@ -407,6 +407,9 @@ def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceP
     if e is None:
         return None
     pieces, xm_free, b, K, u_x, c = e
+    if len(pieces) == 1:  # no uptilt: [-H, H] (twice a frame; the loop below gives the same)
+        lo, hi = pieces[0]
+        return _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
     for lo, hi in reversed(pieces):  # the highest piece with a feasible point holds the largest t_x
         x = _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
         if x is not None:
@@ -620,8 +623,8 @@ def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min:
     (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
     rows = ((b0, -b1, -b2), (a0, -a1, -a2), (-c0, c1, c2))
     roll, pitch, yaw = euler_ned_deg_from_rows(rows)
-    R = np.array((*rows[0], *rows[1], *rows[2])).reshape(3, 3)  # flat, then reshaped: cheaper than nested
-    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R)
+    R = np.array((b0, -b1, -b2, a0, -a1, -a2, -c0, c1, c2)).reshape(3, 3)  # the rows, flat: cheaper than nested
+    return Setpoint(roll, pitch, yaw, min(1.0, max(thrust_min, hover_thrust * f_th / G)), R)  # normalised_thrust
 
 
 def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:

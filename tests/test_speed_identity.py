@@ -191,3 +191,15 @@ def test_cross_xyz_is_np_cross() -> None:
     pairs += [(RNG.normal(size=3), RNG.normal(size=3)) for _ in range(1000)]
     for a, b in pairs:
         assert np.array(cross_xyz(a.tolist(), b.tolist())).tobytes() == np.cross(a, b).tobytes(), (a, b)
+
+
+@pytest.mark.parametrize("dist", [None, [-0.1, 0.02, 0.0, 0.0, 0.0]])
+def test_ray_angle_is_the_angle_of_the_rays(dist: list[float] | None) -> None:
+    """CameraModel.ray_angle (the closing-speed range's two angles a frame) is atan2(|a x b|, a . b) of the two
+    ray_cam_xyz rays, bit for bit."""
+    cam = _camera(dist)
+    for u0, v0, u1, v1 in RNG.uniform([-50, -50, -50, -50], [700, 530, 700, 530], size=(300, 4)).tolist():
+        (ax, ay, az), (bx, by, bz) = cam.ray_cam_xyz(u0, v0), cam.ray_cam_xyz(u1, v1)
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        assert cam.ray_angle(u0, v0, u1, v1) == math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz),
+                                                            ax * bx + ay * by + az * bz)
