@@ -75,6 +75,7 @@ _ENU_TO_NED_ROWS = [1, 0, 2]
 _NED_FRD_SIGNS = np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])  # row signs of P_NED_ENU x column signs of F_FRD_FLU
 
 
+@fast_init  # built every simulated frame (the hover estimate's thrust limits): its __post_init__ still validates
 @dataclass(frozen=True, slots=True)
 class GuidanceParams:
     """Everything the solver needs. Angles in radians, thrusts mass-normalised (m/s^2)."""
