@@ -549,8 +549,6 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     ``a_n`` the PN demand (world; an array or three floats).
     """
     rows = _pn_frame_rows(l, y_ref)
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
-    R_W_PN = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
     ax, ay, az = a_n.tolist() if isinstance(a_n, np.ndarray) else a_n
     (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
@@ -560,7 +558,7 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     # the search below is not needed (its closure and memo cost ~5 % of a controller step). The same _best_tx
     # calls with the same arguments, so the same s and t_x.
     if _best_tx(0.0 * a_y - g_y, 0.0 * a_z - g_z, u, p) is None:
-        return _fallback(R_W_PN, u, p)
+        return _fallback(_rows_array(rows), u, p)
     t_x = _best_tx(1.0 * a_y - g_y, 1.0 * a_z - g_z, u, p)
     if t_x is not None:
         s = 1.0
@@ -568,14 +566,26 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
         memo: dict[float, float | None] = {1.0: None}
         s = _demand_scale(a_y, a_z, g_y, g_z, p, u, memo)  # feasible(0) is computed again: rare
         if s is None:  # cannot happen: s = 0 was feasible above
-            return _fallback(R_W_PN, u, p)
+            return _fallback(_rows_array(rows), u, p)
         t_x = memo[s] if s in memo else _best_tx(s * a_y - g_y, s * a_z - g_z, u, p)
     t_y, t_z = s * a_y - g_y, s * a_z - g_z
     if t_x is None:  # cannot happen: demand_scale checked this very s
-        return _fallback(R_W_PN, u, p)
+        return _fallback(_rows_array(rows), u, p)
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
     f = min(p.f_max, max(f, p.f_min))  # rounding only: (a) gives |t| >= t_z >= f_min
-    return ThrustAttitude(f, phi, theta, R_W_PN.dot(_R_y_R_x(phi, theta)), s, False)
+    # R_W_PN.dot(_R_y_R_x(phi, theta)) with both factors in one array (one construction, not two, every frame):
+    # the same two contiguous 3x3 operands for BLAS, the same product (tests/test_speed_identity.py).
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
+    cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
+    M = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                  cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(2, 3, 3)
+    return ThrustAttitude(f, phi, theta, M[0].dot(M[1]), s, False)
+
+
+def _rows_array(rows: list[list[float]]) -> np.ndarray:
+    """A 3x3 array of a rotation's rows (floats)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
+    return np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
 
 
 def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> ThrustAttitude:
