@@ -118,11 +118,11 @@ class ClosingSpeedEstimator:
         cam, b = self.camera, self.p.border
         x0, y0, x1, y1 = box.xyxy
         alpha = 0.0
-        # Rays as floats (CameraModel.ray_cam_xyz, the same values as ray_cam): four rays every frame.
+        # The angle between the rays through opposite edges (CameraModel.ray_angle: floats, no arrays).
         if x0 > b and x1 < cam.width - b:
-            alpha = _angle(cam.ray_cam_xyz(x0, box.cy), cam.ray_cam_xyz(x1, box.cy))
+            alpha = cam.ray_angle(x0, box.cy, x1, box.cy)
         if y0 > b and y1 < cam.height - b:
-            alpha = max(alpha, _angle(cam.ray_cam_xyz(box.cx, y0), cam.ray_cam_xyz(box.cx, y1)))
+            alpha = max(alpha, cam.ray_angle(box.cx, y0, box.cx, y1))
         if not (1e-6 < alpha < math.pi * 0.9):
             return None
         return self.p.gate_radius / math.tan(0.5 * alpha)
@@ -168,9 +168,3 @@ class ClosingSpeedEstimator:
         self._x = (x0 + k0 * r, x1 + k1 * r)
         self._P = (p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01)
 
-
-def _angle(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
-    ax, ay, az = a
-    bx, by, bz = b
-    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)

@@ -25,7 +25,7 @@ import numpy as np
 
 from companion import guidance
 from companion.closing import ClosingParams, ClosingSpeedEstimator
-from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu
+from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu, swap_ned_enu_xyz
 from companion.guidance import GuidanceParams, Setpoint
 from companion.ownmotion import OwnMotion
 from perception.fastinit import fast_init
@@ -130,12 +130,13 @@ class PNController:
 
     @classmethod
     def from_config(cls, cfg: Config) -> PNController:
-        camera = CameraModel.from_config(cfg.camera)
+        # runtime import: config is a type-only import here
+        from companion.config import camera_model, camera_uptilt
+
+        camera = camera_model(cfg.camera)  # built once per camera section (a simulated run builds a controller)
         # A camera pitched up (about body y only) is part of the exact FOV bound (GuidanceParams.uptilt). Any
         # other mount: the solver bounds the angle between the LOS and body x, and a camera tilted off body x by
         # delta keeps the LOS within gamma_bar of the optical axis only if we ask for gamma_bar - delta.
-        from companion.config import camera_uptilt  # runtime import: config is a type-only import here
-
         uptilt = camera_uptilt(cfg)
         misalign = 0.0 if uptilt is not None else math.acos(max(-1.0, min(1.0, float(camera.optical_axis_body[0]))))
         gp = GuidanceParams(
@@ -184,7 +185,9 @@ class PNController:
         self._filter.reset()
         if self._kf is not None:
             self._kf.reset()
-        self._l_prev: np.ndarray | None = None  # filtered LOS (ENU) of the last used frame
+        # Filtered LOS (ENU) of the last used frame, as floats: an array of it is made only where numpy's dot
+        # product needs one (_l_prev_array).
+        self._l_prev_xyz: tuple[float, float, float] | None = None
         self._t_prev: float | None = None
         self._t_last: float | None = None  # time of the last step, used or not
         self._jumps = 0
@@ -193,14 +196,19 @@ class PNController:
         self._latency = 0.0  # age of the last frame when it reached us, s
         self._t_now: float | None = None  # the caller's time now (frame arrival), when given
         self._own = OwnMotion(self.p.own_lag, self.p.own_drag_rate)  # our commands since a frame (delay prediction)
-        self._drag: np.ndarray | None = None  # filtered aerodynamic acceleration (ENU), from the accelerometer
+        # Filtered aerodynamic acceleration (ENU) from the accelerometer, as floats (element-wise filter math).
+        self._drag: tuple[float, float, float] | None = None
         self._t_drag: float | None = None
         if self._closing is not None:
             self._closing.reset()
 
     @property
     def has_los(self) -> bool:
-        return self._l_prev is not None
+        return self._l_prev_xyz is not None
+
+    def _l_prev_array(self) -> np.ndarray:
+        assert self._l_prev_xyz is not None
+        return np.array(self._l_prev_xyz)
 
     @property
     def closing_rate(self) -> tuple[float, float] | None:
@@ -215,7 +223,7 @@ class PNController:
     def drag_enu(self) -> np.ndarray | None:
         """The filtered aerodynamic acceleration (world ENU, m/s^2) the accelerometer measured, or None (no
         accelerometer given, or drag_compensation off). The straight pass cancels it."""
-        return None if self._drag is None else self._drag.copy()
+        return None if self._drag is None else np.array(self._drag)
 
     def step(self, t: float, box: BoundingBox | None, q_wxyz_ned_frd: np.ndarray,
              accel_frd: np.ndarray | None = None, t_now: float | None = None) -> ControlOutput:
@@ -232,7 +240,7 @@ class PNController:
         if rejected is None:
             assert box is not None
             l_ned = R_ned_frd.dot(self.camera.ray_body(box.cx, box.cy))
-            l_enu = swap_ned_enu(l_ned)
+            l_enu = swap_ned_enu_xyz(*l_ned.tolist())  # floats: the LOS checks and filter run on floats
             rejected = self._jump(t, l_enu)
             if rejected is None:
                 self._closing_speed(t, box, R_ned_frd, accel_frd)
@@ -251,12 +259,16 @@ class PNController:
         ax, ay = float(accel_frd[0]), float(accel_frd[1])
         if not (math.isfinite(ax) and math.isfinite(ay)):
             return
-        d = swap_ned_enu(R_ned_frd[:, 0] * ax + R_ned_frd[:, 1] * ay)
+        # R[:, 0] ax + R[:, 1] ay and the low-pass in floats: numpy's element-wise products and sums, the same
+        # bits, without ~8 array operations a frame.
+        (r00, r01, _), (r10, r11, _), (r20, r21, _) = R_ned_frd.tolist()
+        dx, dy, dz = swap_ned_enu_xyz(r00 * ax + r01 * ay, r10 * ax + r11 * ay, r20 * ax + r21 * ay)
         if self._drag is None or self._t_drag is None or not (0.0 < t - self._t_drag <= self.p.max_dt):
-            self._drag = d
+            self._drag = (dx, dy, dz)
         else:
             beta = 1.0 - math.exp(-2.0 * math.pi * self.p.drag_cutoff_hz * (t - self._t_drag))
-            self._drag = self._drag + beta * (d - self._drag)
+            ox, oy, oz = self._drag
+            self._drag = (ox + beta * (dx - ox), oy + beta * (dy - oy), oz + beta * (dz - oz))
         self._t_drag = t
 
     def _closing_speed(self, t: float, box: BoundingBox | None, R_ned_frd: np.ndarray,
@@ -266,10 +278,11 @@ class PNController:
             return
         u = None
         d = est.range
-        if accel_frd is not None and self._l_prev is not None and d is not None:
+        if accel_frd is not None and self._l_prev_xyz is not None and d is not None:
             # Range acceleration explained by our own motion: -a . l + d lambda_dot^2 (gate assumed unaccelerated).
-            a_ned = R_ned_frd.dot(np.asarray(accel_frd, dtype=float)) + np.array([0.0, 0.0, guidance.G])
-            u = -float(swap_ned_enu(a_ned).dot(self._l_prev)) + d * self._lam * self._lam
+            x, y, z = R_ned_frd.dot(np.asarray(accel_frd, dtype=float)).tolist()
+            a_enu = np.array(swap_ned_enu_xyz(x + 0.0, y + 0.0, z + guidance.G))  # + [0, 0, g], element-wise
+            u = -float(a_enu.dot(self._l_prev_array())) + d * self._lam * self._lam
         est.update(t, box, u)
 
     # -- internals -------------------------------------------------------------------------
@@ -285,14 +298,14 @@ class PNController:
             return f"invalid box ({box.cx}, {box.cy}, {box.w}, {box.h})"
         return None
 
-    def _jump(self, t: float, l_enu: np.ndarray) -> str | None:
+    def _jump(self, t: float, l_enu: tuple[float, float, float]) -> str | None:
         """A LOS that moved faster than max_los_rate since the last used frame is a jump, unless it persists."""
-        if self._l_prev is None or self._t_prev is None:
+        if self._l_prev_xyz is None or self._t_prev is None:
             return None
         dt = t - self._t_prev
         if dt > self.p.max_dt:
             return None  # long gap: the filter restarts anyway
-        angle = guidance.angle_between(l_enu, self._l_prev)
+        angle = guidance.angle_between(l_enu, self._l_prev_xyz)
         if angle / dt <= self.p.max_los_rate:
             self._jumps = 0
             return None
@@ -303,7 +316,7 @@ class PNController:
             self._filter.reset()
             if self._kf is not None:
                 self._kf.reset()
-            self._l_prev = None
+            self._l_prev_xyz = None
             self._w = None
             if self._closing is not None:
                 self._closing.reset()
@@ -316,7 +329,7 @@ class PNController:
         if t is not None:
             self._own.note(t, a)
 
-    def _predict_rate(self, t: float, l_f: np.ndarray, lam: float,
+    def _predict_rate(self, t: float, lf: tuple[float, float, float], lam: float,
                       n: Vec3) -> tuple[float, Vec3]:
         """The LOS rate now, not at capture: ``dl/dt = v_rel_normal / d``, so our own velocity change since the
         capture, ``dv``, moves it by ``-dv_normal / d`` (d from the closing-speed range). The gate's own
@@ -326,13 +339,14 @@ class PNController:
         if d is None or d <= 0.5 or t_now is None or not self._own:
             return lam, n
         dv = self._own.dv(t - self.p.own_delay, t_now - self.p.own_delay)  # a command acts own_delay later
+        l_f = np.array(lf)
         dv = dv - float(dv.dot(l_f)) * l_f
         w = lam * np.asarray(n, dtype=float) - dv / d
         lp = math.sqrt(w.dot(w))
         return lp, (w / lp if lp > 0.0 else np.zeros(3))
 
-    def _predict_state(self, t: float, l_f: np.ndarray, lam: float,
-                       n: Vec3) -> tuple[np.ndarray, float, Vec3]:
+    def _predict_state(self, t: float, l_f: tuple[float, float, float], lam: float,
+                       n: Vec3) -> tuple[Vec3, float, Vec3]:
         """The LOS and LOS rate now, not at capture: the relative position ``r = d l`` and velocity
         ``v = d_dot l + d lambda_dot n`` (range and range rate from the closing-speed filter) propagated through
         the frame's age at constant relative velocity, less our own velocity change (delay_compensation). For an
@@ -349,7 +363,7 @@ class PNController:
         tau = t_now - t
         # Element-wise parts in floats (the same operations as the array expressions, bit for bit); arrays only
         # where numpy's dot products must give their own rounding.
-        (lx, ly, lz), (nx, ny, nz) = l_f.tolist(), (n.tolist() if isinstance(n, np.ndarray) else n)
+        (lx, ly, lz), (nx, ny, nz) = l_f, (n.tolist() if isinstance(n, np.ndarray) else n)
         dl = d * lam
         vx, vy, vz = d_dot * lx + dl * nx, d_dot * ly + dl * ny, d_dot * lz + dl * nz  # v = d_dot l + d lam n
         rx, ry, rz = d * lx + vx * tau, d * ly + vy * tau, d * lz + vz * tau  # r = d l + v tau
@@ -360,7 +374,7 @@ class PNController:
             vx, vy, vz = vx - dvx, vy - dvy, vz - dvz
         r = np.array([rx, ry, rz])
         d2 = math.sqrt(r.dot(r))
-        if not (d2 > 1e-6) or float(r.dot(l_f)) <= 0.0:
+        if not (d2 > 1e-6) or float(r.dot(np.array(l_f))) <= 0.0:
             return l_f, lam, n  # predicted past the gate: the frame says nothing about now
         l2x, l2y, l2z = rx / d2, ry / d2, rz / d2
         l2 = np.array([l2x, l2y, l2z])
@@ -392,9 +406,11 @@ class PNController:
                                      min(self.p.gamma_min, gp.gamma_bar))
         return gp if g >= gp.gamma_bar else guidance.with_gamma_bar(gp, g)
 
-    def _pn(self, t: float, l_enu: np.ndarray, R_ned_frd: np.ndarray, box: BoundingBox | None = None) -> ControlOutput:
+    def _pn(self, t: float, l_enu: tuple[float, float, float], R_ned_frd: np.ndarray,
+            box: BoundingBox | None = None) -> ControlOutput:
         dt = t - self._t_prev if self._t_prev is not None else 0.0
         rejected = None
+        # The filtered LOS as floats (lf); arrays of it only where numpy's dot products need them, and the output.
         if self._kf is not None:
             # The Kalman filter gives the LOS and its rate; a gated box leaves its prediction (PN goes on).
             size = max(box.w, box.h) if box is not None else 0.0
@@ -402,53 +418,53 @@ class PNController:
             # The LOS accelerates more as the gate nears (~1/range^2): optionally more process noise for a bigger box.
             w0 = self.p.kalman_accel_width
             acc = self._kf.p.accel_std * (1.0 + size / w0) if w0 > 0.0 else None
-            if not self._kf.update(t, l_enu, sigma, acc):
+            if not self._kf.update(t, np.array(l_enu), sigma, acc):
                 rejected = f"innovation gate ({self._kf.last_nis:.1f} sigma)"
             assert self._kf.l is not None
-            l_f = self._kf.l.copy()
-            lambda_dot, n = self._smooth_rate(l_f, self._kf.rate, dt)
+            lf = tuple(self._kf.l.tolist())
+            lambda_dot, n = self._smooth_rate(lf, self._kf.rate, dt)
         else:
-            l_f = self._filter.update(t, l_enu)
-            w_xyz = guidance.los_rate_vector(l_f, self._l_prev if dt <= self.p.max_dt else None, dt)
-            lambda_dot, n = self._smooth_rate(l_f, w_xyz, dt)
+            lf = self._filter.update_xyz(t, *l_enu)
+            w_xyz = guidance.los_rate_vector(lf, self._l_prev_xyz if dt <= self.p.max_dt else None, dt)
+            lambda_dot, n = self._smooth_rate(lf, w_xyz, dt)
         self._lam = lambda_dot
-        l_sol = l_f
+        l_sol: Vec3 = lf
         if self.p.delay_prediction:
-            l_sol, lambda_dot, n = self._predict_state(t, l_f, lambda_dot, n)
+            l_sol, lambda_dot, n = self._predict_state(t, lf, lambda_dot, n)
         elif self.p.delay_compensation:
-            lambda_dot, n = self._predict_rate(t, l_f, lambda_dot, n)
+            lambda_dot, n = self._predict_rate(t, lf, lambda_dot, n)
         gp = self.p.guidance
         v_rel = self._closing.speed(lambda_dot, self._latency) if self._closing is not None else gp.v_rel_bar
-        a_n = guidance.pn_demand(lambda_dot, n, gp.k_pn, v_rel)
+        ax, ay, az = guidance.pn_demand_xyz(lambda_dot, n, gp.k_pn, v_rel)
         # The PN frame's y axis of the filtered LOS and the measured drag along it: only the drag terms below use
         # them (computed once, when there is a drag estimate). Element-wise math in floats from here (the same
-        # operations as the array expressions, bit for bit).
-        y_pn = _y_pn(l_f) if self._drag is not None else None
-        drag_y = float(self._drag.dot(y_pn)) if self._drag is not None and y_pn is not None else 0.0
-        if y_pn is not None and self.p.drag_compensation > 0.0:
+        # operations as the array expressions, bit for bit); the drag's dot product stays numpy's.
+        y_xyz = _y_pn_xyz(lf) if self._drag is not None else None
+        drag_y = (float(np.array(self._drag).dot(np.array(y_xyz))) if self._drag is not None and y_xyz is not None
+                  else 0.0)
+        if y_xyz is not None and self.p.drag_compensation > 0.0:
             # The paper assumes drag along the LOS. Chasing a gate that moves sideways, drag has a horizontal part
             # normal to the LOS that PN would have to beat with a persistent LOS rate: cancel that part. (The
             # accelerometer misses drag along the thrust axis, so the vertical normal part is not trusted.)
             c = self.p.drag_compensation * drag_y
-            (ax, ay, az), (yx, yy, yz) = a_n.tolist(), y_pn.tolist()
-            a_n = np.array([ax - c * yx, ay - c * yy, az - c * yz])  # a_n - c y_pn
-        sol = guidance.solve(l_sol, a_n, self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
-        self._l_prev, self._t_prev = l_f.copy(), t
+            yx, yy, yz = y_xyz
+            ax, ay, az = ax - c * yx, ay - c * yy, az - c * yz  # a_n - c y_pn
+        sol = guidance.solve(l_sol, (ax, ay, az), self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
+        self._l_prev_xyz, self._t_prev = lf, t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
             s = sol.demand_scale
-            ax, ay, az = a_n.tolist()
             nx, ny, nz = s * ax, s * ay, s * az
-            if y_pn is not None:
-                yx, yy, yz = y_pn.tolist()
+            if y_xyz is not None:
+                yx, yy, yz = y_xyz
                 nx, ny, nz = nx + drag_y * yx, ny + drag_y * yy, nz + drag_y * yz
             self._note_command((nx, ny, nz))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "pn", swap_ned_enu(l_f), lambda_dot, a_n, sol.demand_scale, sol.f_th, rejected,
-                             v_rel)
+        return ControlOutput(t, sp, "pn", np.array(swap_ned_enu_xyz(*lf)), lambda_dot, np.array((ax, ay, az)),
+                             sol.demand_scale, sol.f_th, rejected, v_rel)
 
-    def _smooth_rate(self, l_f: np.ndarray, w: np.ndarray | tuple[float, float, float],
+    def _smooth_rate(self, l_f: tuple[float, float, float], w: np.ndarray | tuple[float, float, float],
                      dt: float) -> tuple[float, tuple[float, float, float]]:
         """Optional first-order low-pass on the LOS rate vector: differencing a 30 Hz LOS amplifies
         pixel noise, and k_PN v_rel_bar (~30 m/s) turns it into thrust jitter. Kept normal to the LOS."""
@@ -460,7 +476,7 @@ class PNController:
                 beta = 1.0 - math.exp(-2.0 * math.pi * self._rate_cutoff() * dt)
                 ox, oy, oz = self._w
                 wx, wy, wz = ox + beta * (wx - ox), oy + beta * (wy - oy), oz + beta * (wz - oz)
-                lx, ly, lz = l_f.tolist()
+                lx, ly, lz = l_f
                 d = wx * lx + wy * ly + wz * lz
                 wx, wy, wz = wx - d * lx, wy - d * ly, wz - d * lz
                 self._w = (wx, wy, wz)
@@ -487,22 +503,23 @@ class PNController:
 
     def _no_box(self, t: float, R_ned_frd: np.ndarray, rejected: str) -> ControlOutput:
         zero = np.zeros(3)
-        if self._l_prev is None:
+        if self._l_prev_xyz is None:
             _, _, yaw = euler_ned_deg_from_R(R_ned_frd)
             sp = guidance.hover_setpoint(yaw, self.p.hover_thrust)
             return ControlOutput(t, sp, "hover", None, 0.0, zero, 0.0, guidance.G, rejected)
         # Coast: keep flying along the last inertial LOS with no PN demand until the box returns
         # (the app's safety layer decides when "lost" becomes an abort).
-        sol = guidance.solve(self._l_prev, zero, self._gamma(None), y_ref=self._y_ref(self._l_prev, R_ned_frd))
+        l_prev = self._l_prev_xyz
+        sol = guidance.solve(l_prev, zero, self._gamma(None), y_ref=self._y_ref(l_prev, R_ned_frd))
         sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
-        return ControlOutput(t, sp, "coast", swap_ned_enu(self._l_prev), 0.0, zero, sol.demand_scale, sol.f_th,
+        return ControlOutput(t, sp, "coast", np.array(swap_ned_enu_xyz(*l_prev)), 0.0, zero, sol.demand_scale, sol.f_th,
                              rejected)
 
     @staticmethod
-    def _y_ref(l_enu: np.ndarray, R_ned_frd: np.ndarray) -> np.ndarray | None:
+    def _y_ref(l_enu: Vec3, R_ned_frd: np.ndarray) -> np.ndarray | None:
         """The solver's y_ref: pn_frame reads it only at a vertical LOS (its own test, ``hypot(l_x, l_y) <= 1e-9``),
         so elsewhere it is not built (a slice, a matmul and a negation every frame)."""
-        lx, ly, _ = l_enu.tolist()
+        lx, ly, _ = l_enu.tolist() if isinstance(l_enu, np.ndarray) else l_enu
         return None if math.hypot(lx, ly) > 1e-9 else PNController._body_y_enu(R_ned_frd)
 
     @staticmethod
@@ -513,11 +530,11 @@ class PNController:
 
 
 
-def _y_pn(l_enu: np.ndarray) -> np.ndarray | None:
+def _y_pn_xyz(l_enu: tuple[float, float, float]) -> tuple[float, float, float] | None:
     """The PN frame's y axis (``e_z x l`` normalised: horizontal, normal to the LOS), None at a vertical LOS."""
-    lx, ly, _ = l_enu.tolist()
+    lx, ly, _ = l_enu
     h = math.hypot(lx, ly)
-    return np.array([-ly / h, lx / h, 0.0]) if h > 1e-6 else None
+    return (-ly / h, lx / h, 0.0) if h > 1e-6 else None
 
 
 def half_fov(camera: CameraModel) -> float:

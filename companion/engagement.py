@@ -222,11 +222,13 @@ class Engagement:
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
+        from companion.config import camera_model  # the camera's model built once per section (every sim run)
+
         lock = None
         if cfg.app.target_lock:
             g = cfg.guidance
             lock = TargetLock(LockParams(g.v_rel_bar, g.gate_radius, cfg.los_filter.max_rate,
-                                         float(cfg.perception.max_growth_rate)), CameraModel.from_config(cfg.camera))
+                                         float(cfg.perception.max_growth_rate)), camera_model(cfg.camera))
         params = params or EngagementParams.from_config(cfg)
         eng = cls.create(params, controller, cfg.app, cfg.safety, lock)
         if cfg.app.verify.enabled:

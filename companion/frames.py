@@ -50,8 +50,12 @@ def swap_ned_enu(v: np.ndarray) -> np.ndarray:
     """``P_NED_ENU.dot(v)`` for a 3-vector (either way: P is its own inverse), bit for bit: every product is by
     0 or +-1 and exact, so their sum is exact in any order; BLAS adds them to a +0 accumulator, which the
     leading ``0.0 +`` repeats for the sign of a zero. Without a matrix product's cost (every frame)."""
-    x, y, z = v.tolist()
-    return np.array([0.0 + 0.0 * x + y + 0.0 * z, 0.0 + x + 0.0 * y + 0.0 * z, 0.0 + 0.0 * x + 0.0 * y - z])
+    return np.array(swap_ned_enu_xyz(*v.tolist()))
+
+
+def swap_ned_enu_xyz(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """:func:`swap_ned_enu` on three floats, the same values (the controller's per-frame path: no array)."""
+    return 0.0 + 0.0 * x + y + 0.0 * z, 0.0 + x + 0.0 * y + 0.0 * z, 0.0 + 0.0 * x + 0.0 * y - z
 
 
 def R_ned_frd_from_enu_flu(R_enu_flu: np.ndarray) -> np.ndarray:
@@ -108,7 +112,7 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
     """
     global _LAST_R
     key = None
-    if type(q_wxyz) is np.ndarray and q_wxyz.dtype == np.float64 and q_wxyz.shape == (4,):
+    if type(q_wxyz) is np.ndarray and q_wxyz.dtype is _F64 and q_wxyz.shape == (4,):
         # The same frame's attitude is turned into a matrix several times (controller, engagement, hover
         # estimate): the last one is kept, keyed on the quaternion's exact bits, and handed out as a copy.
         key = q_wxyz.tobytes()
@@ -117,7 +121,7 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
             return last_R.copy()
         w, x, y, z = q_wxyz.tolist()  # the same floats as float() of each element
     else:
-        w, x, y, z = (float(c) for c in q_wxyz)
+        w, x, y, z = map(float, q_wxyz)  # the same floats as a generator of float(c), cheaper (the simulator's path)
     n = w * w + x * x + y * y + z * z
     if not (n > 1e-12 and math.isfinite(n)):
         raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
@@ -133,3 +137,6 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
 
 
 _LAST_R: tuple[bytes | None, np.ndarray] = (None, np.eye(3))
+# The native float64 dtype is a singleton: an identity test is half the cost of ``dtype == np.float64`` (a
+# non-native byte order fails it and takes the general path, with the same values).
+_F64 = np.dtype(np.float64)

@@ -69,11 +69,13 @@ DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 
 g_W = np.array([0.0, 0.0, -G])
 
 _EPS = 1e-12
+Vec3 = np.ndarray | tuple[float, float, float]  # a 3-vector: an array, or three floats on the per-frame path
 _UPTILT_EPS = 1e-12  # rad: below, the camera counts as along body x (the closed form; subnormal sines underflow)
 _ENU_TO_NED_ROWS = [1, 0, 2]
 _NED_FRD_SIGNS = np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])  # row signs of P_NED_ENU x column signs of F_FRD_FLU
 
 
+@fast_init  # built every simulated frame (the hover estimate's thrust limits): its __post_init__ still validates
 @dataclass(frozen=True, slots=True)
 class GuidanceParams:
     """Everything the solver needs. Angles in radians, thrusts mass-normalised (m/s^2)."""
@@ -121,9 +123,9 @@ class ThrustAttitude:
 
 
 def angle_between(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle between two vectors, accurate for small and large angles alike."""
-    ax, ay, az = a.tolist()
-    bx, by, bz = b.tolist()
+    """Angle between two vectors (arrays or float triples), accurate for small and large angles alike."""
+    ax, ay, az = a.tolist() if isinstance(a, np.ndarray) else a
+    bx, by, bz = b.tolist() if isinstance(b, np.ndarray) else b
     cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
     return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
 
@@ -149,13 +151,13 @@ def los_rate(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> LosRate:  #
     return LosRate(angle / dt, np.array([kx, ky, kz]), n)
 
 
-def los_rate_vector(l: np.ndarray, l_prev: np.ndarray | None, dt: float) -> tuple[float, float, float]:  # noqa: E741
+def los_rate_vector(l: Vec3, l_prev: Vec3 | None, dt: float) -> tuple[float, float, float]:  # noqa: E741
     """``lambda_dot * n`` of :func:`los_rate` as three floats, the same operations bit for bit (the controller's
-    per-frame path: no LosRate and no arrays)."""
+    per-frame path: no LosRate and no arrays; ``l`` and ``l_prev`` arrays or float triples)."""
     if l_prev is None or not (dt > 0.0) or not math.isfinite(dt):
         return 0.0, 0.0, 0.0
-    lx, ly, lz = l.tolist()
-    px, py, pz = l_prev.tolist()
+    lx, ly, lz = l.tolist() if isinstance(l, np.ndarray) else l
+    px, py, pz = l_prev.tolist() if isinstance(l_prev, np.ndarray) else l_prev
     kx, ky, kz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px
     s = math.sqrt(kx * kx + ky * ky + kz * kz)
     if s < _EPS:
@@ -178,9 +180,14 @@ def with_gamma_bar(p: GuidanceParams, gamma_bar: float) -> GuidanceParams:
 def pn_demand(lambda_dot: float, n: np.ndarray | tuple[float, float, float], k_pn: float,
               v_rel_bar: float) -> np.ndarray:
     """eq:meth_pn_guidance_law: ``a_n = k_PN * v_rel_bar * lambda_dot * n`` (``n`` an array or three floats)."""
+    return np.array(pn_demand_xyz(lambda_dot, n, k_pn, v_rel_bar))
+
+
+def pn_demand_xyz(lambda_dot: float, n: Vec3, k_pn: float, v_rel_bar: float) -> tuple[float, float, float]:
+    """:func:`pn_demand` as three floats (the array product's values, without its cost)."""
     g = k_pn * v_rel_bar * lambda_dot
-    nx, ny, nz = n.tolist() if isinstance(n, np.ndarray) else n  # the array product's values, without its cost
-    return np.array([g * nx, g * ny, g * nz])
+    nx, ny, nz = n.tolist() if isinstance(n, np.ndarray) else n
+    return g * nx, g * ny, g * nz
 
 
 def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # noqa: E741
@@ -192,9 +199,9 @@ def pn_frame(l: np.ndarray, y_ref: np.ndarray | None = None) -> np.ndarray:  # n
     return np.array(_pn_frame_rows(l, y_ref))
 
 
-def _pn_frame_rows(l: np.ndarray, y_ref: np.ndarray | None = None) -> list[list[float]]:  # noqa: E741
-    """:func:`pn_frame` as nested lists of floats (rows), for the solver's scalar math."""
-    lx, ly, lz = l.tolist()
+def _pn_frame_rows(l: Vec3, y_ref: np.ndarray | None = None) -> list[list[float]]:  # noqa: E741
+    """:func:`pn_frame` as nested lists of floats (rows), for the solver's scalar math (``l`` an array or floats)."""
+    lx, ly, lz = l.tolist() if isinstance(l, np.ndarray) else l
     ny = math.hypot(lx, ly)
     if ny > 1e-9:
         yx, yy, yz = -ly / ny, lx / ny, 0.0  # e_z x l, normalised
@@ -401,6 +408,9 @@ def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceP
     if e is None:
         return None
     pieces, xm_free, b, K, u_x, c = e
+    if len(pieces) == 1:  # no uptilt: [-H, H] (twice a frame; the loop below gives the same)
+        lo, hi = pieces[0]
+        return _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
     for lo, hi in reversed(pieces):  # the highest piece with a feasible point holds the largest t_x
         x = _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
         if x is not None:
@@ -527,7 +537,7 @@ def _R_y_R_x(phi: float, theta: float) -> np.ndarray:
     return np.array((cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(3, 3)  # flat: cheaper
 
 
-def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
+def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None) -> ThrustAttitude:  # noqa: E741
     """Closed-form optimum of eq:meth_optimization_problem_simplified with the flight envelope, and saturation.
 
     With ``t = s a_n^PN - g^PN`` normal to the LOS, the thrust along the LOS ``t_x = f sin(phi) cos(theta)`` is
@@ -535,27 +545,47 @@ def solve(l: np.ndarray, a_n: np.ndarray, p: GuidanceParams, y_ref: np.ndarray |
     tilt bound this is the paper's ``f_th* = min(f_max, (n_z a_n - g_z^PN) / cos(gamma_bar))`` for ``fov="paper"``
     and ``min(f_max, hypot(t_y, t_z / cos(gamma_bar)))`` for the exact bound). Then
     ``f_th* = |t|``, ``phi* = atan2(t_x, t_z)``, ``theta* = atan2(-t_y, hypot(t_x, t_z))``,
-    ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS, ``a_n`` the PN demand (world).
+    ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS (an array or three floats),
+    ``a_n`` the PN demand (world; an array or three floats).
     """
     rows = _pn_frame_rows(l, y_ref)
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
-    R_W_PN = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
-    ax, ay, az = a_n.tolist()
+    ax, ay, az = a_n.tolist() if isinstance(a_n, np.ndarray) else a_n
     (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
     a_y, a_z = yx * ax + yy * ay + yz * az, zx * ax + zy * ay + zz * az  # n_y a_n, n_z a_n
     g_y, g_z = -G * yz, -G * zz  # g^PN = R_W^PN g: its y part is 0 unless the LOS is vertical
     u = (lz, yz, zz)  # world up in the PN frame: the axis of the tilt cone
-    memo: dict[float, float | None] = {}
-    s = _demand_scale(a_y, a_z, g_y, g_z, p, u, memo)
-    if s is None:
-        return _fallback(R_W_PN, u, p)
+    # demand_scale's first two tests (s = 0, then s = 1) written out: most frames the full demand is feasible and
+    # the search below is not needed (its closure and memo cost ~5 % of a controller step). The same _best_tx
+    # calls with the same arguments, so the same s and t_x.
+    if _best_tx(0.0 * a_y - g_y, 0.0 * a_z - g_z, u, p) is None:
+        return _fallback(_rows_array(rows), u, p)
+    t_x = _best_tx(1.0 * a_y - g_y, 1.0 * a_z - g_z, u, p)
+    if t_x is not None:
+        s = 1.0
+    else:
+        memo: dict[float, float | None] = {1.0: None}
+        s = _demand_scale(a_y, a_z, g_y, g_z, p, u, memo)  # feasible(0) is computed again: rare
+        if s is None:  # cannot happen: s = 0 was feasible above
+            return _fallback(_rows_array(rows), u, p)
+        t_x = memo[s] if s in memo else _best_tx(s * a_y - g_y, s * a_z - g_z, u, p)
     t_y, t_z = s * a_y - g_y, s * a_z - g_z
-    t_x = memo[s] if s in memo else _best_tx(t_y, t_z, u, p)
     if t_x is None:  # cannot happen: demand_scale checked this very s
-        return _fallback(R_W_PN, u, p)
+        return _fallback(_rows_array(rows), u, p)
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
     f = min(p.f_max, max(f, p.f_min))  # rounding only: (a) gives |t| >= t_z >= f_min
-    return ThrustAttitude(f, phi, theta, R_W_PN.dot(_R_y_R_x(phi, theta)), s, False)
+    # R_W_PN.dot(_R_y_R_x(phi, theta)) with both factors in one array (one construction, not two, every frame):
+    # the same two contiguous 3x3 operands for BLAS, the same product (tests/test_speed_identity.py).
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
+    cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
+    M = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                  cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(2, 3, 3)
+    return ThrustAttitude(f, phi, theta, M[0].dot(M[1]), s, False)
+
+
+def _rows_array(rows: list[list[float]]) -> np.ndarray:
+    """A 3x3 array of a rotation's rows (floats)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
+    return np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
 
 
 def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> ThrustAttitude:
@@ -600,12 +630,12 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
     """The one conversion from the paper's frames (ENU/FLU) to a MAVSDK setpoint (NED/FRD)."""
     # = P_NED_ENU @ R_W_B @ F_FRD_FLU = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS, without two matmuls; in floats
-    # (x * 1.0 and x * -1.0 exactly as numpy's elementwise product, signed zeros included).
+    # (x * 1.0 is x and x * -1.0 is -x, exactly as numpy's elementwise product, signed zeros included).
     (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
-    rows = ((b0 * 1.0, b1 * -1.0, b2 * -1.0), (a0 * 1.0, a1 * -1.0, a2 * -1.0), (c0 * -1.0, c1 * 1.0, c2 * 1.0))
+    rows = ((b0, -b1, -b2), (a0, -a1, -a2), (-c0, c1, c2))
     roll, pitch, yaw = euler_ned_deg_from_rows(rows)
-    R = np.array((*rows[0], *rows[1], *rows[2])).reshape(3, 3)  # flat, then reshaped: cheaper than nested
-    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R)
+    R = np.array((b0, -b1, -b2, a0, -a1, -a2, -c0, c1, c2)).reshape(3, 3)  # the rows, flat: cheaper than nested
+    return Setpoint(roll, pitch, yaw, min(1.0, max(thrust_min, hover_thrust * f_th / G)), R)  # normalised_thrust
 
 
 def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:

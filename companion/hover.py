@@ -138,7 +138,7 @@ def thrust_specific_force(accel_frd: Any, R_ned_frd: Any | None, cfg: HoverConfi
     cos_tilt = float(r[2])
     if not cos_tilt >= _cos_deg(c.max_tilt):
         return math.nan
-    return -float(r @ f) / cos_tilt
+    return -float(r.dot(f)) / cos_tilt  # .dot: the same BLAS ddot as @, without matmul's dispatch (every frame)
 
 
 @cache

@@ -41,7 +41,7 @@ def unit(normal: Sequence[float] | np.ndarray) -> np.ndarray:
 
 def signed_distance(normal: np.ndarray, p: np.ndarray, gate: np.ndarray) -> float:
     """Distance of ``p`` from the plane through ``gate`` along the unit ``normal`` (> 0 on the normal side)."""
-    return float(normal @ (p - gate))
+    return float(normal.dot(p - gate))  # .dot: the same BLAS ddot as @, without matmul's dispatch (every frame)
 
 
 def segment_crossing(normal: np.ndarray, t0: float, p0: np.ndarray, g0: np.ndarray, s0: float,

@@ -20,13 +20,13 @@ def fast_init(cls: T) -> T:
     """Class decorator (above ``@dataclass(frozen=True, slots=True)``): replace the generated ``__init__``.
 
     Only for the plain case: every field an ordinary positional init field, no ``default_factory``, no
-    ``__post_init__`` (a class that validates keeps the dataclass ``__init__``)."""
+    ``InitVar``. A ``__post_init__`` (validation) is called last, as the dataclass ``__init__`` calls it."""
     name = cls.__qualname__
     params = getattr(cls, "__dataclass_params__", None)
     if params is None or not params.frozen or "__slots__" not in cls.__dict__:
         raise TypeError(f"fast_init({name}): needs a @dataclass(frozen=True, slots=True) class")
-    if hasattr(cls, "__post_init__"):
-        raise TypeError(f"fast_init({name}): has __post_init__ (keep the dataclass __init__)")
+    if len(cls.__dataclass_fields__) != len(dataclasses.fields(cls)):  # type: ignore[attr-defined]
+        raise TypeError(f"fast_init({name}): has an InitVar or ClassVar pseudo-field (keep the dataclass __init__)")
     args: list[str] = []
     body: list[str] = []
     env: dict[str, object] = {}
@@ -43,6 +43,8 @@ def fast_init(cls: T) -> T:
             env[f"_default_{f.name}"] = f.default
             args.append(f"{f.name}=_default_{f.name}")
         body.append(f"    _set_{f.name}(self, {f.name})")
+    if hasattr(cls, "__post_init__"):
+        body.append("    self.__post_init__()")
     src = f"def __init__(self, {', '.join(args)}):\n" + ("\n".join(body) or "    pass") + "\n"
     local: dict[str, object] = {}
     exec(src, env, local)

@@ -71,6 +71,26 @@ class CameraModel:
         n = math.sqrt(x * x + y * y + 1.0)
         return x / n, y / n, 1.0 / n
 
+    def ray_angle(self, u0: float, v0: float, u1: float, v1: float) -> float:
+        """The angle (rad) between the rays through pixels (u0, v0) and (u1, v1): ``atan2(|a x b|, a . b)`` of
+        their :meth:`ray_cam_xyz`, the same floats; written out for an undistorted camera (the closing speed's
+        range takes two a frame, and the calls cost more than the arithmetic)."""
+        if self._distorted:  # type: ignore[attr-defined]
+            ax, ay, az = self.ray_cam_xyz(u0, v0)
+            bx, by, bz = self.ray_cam_xyz(u1, v1)
+        else:
+            k00, k01, k02, k11, k12 = self._K_inv_scalars  # type: ignore[attr-defined]
+            x = k00 * u0 + k01 * v0 + k02
+            y = k11 * v0 + k12
+            n = math.sqrt(x * x + y * y + 1.0)
+            ax, ay, az = x / n, y / n, 1.0 / n
+            x = k00 * u1 + k01 * v1 + k02
+            y = k11 * v1 + k12
+            n = math.sqrt(x * x + y * y + 1.0)
+            bx, by, bz = x / n, y / n, 1.0 / n
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+
     def ray_body(self, u: float, v: float) -> np.ndarray:
         """Unit ray in body FRD through pixel (u, v)."""
         rows = self._perm_rows  # type: ignore[attr-defined]
@@ -114,26 +134,43 @@ class LosFilter:
             raise ValueError(f"LOS filter cutoff must be > 0 Hz, got {cutoff_hz}")
         self.cutoff_hz = float(cutoff_hz)
         self.max_dt = float(max_dt)
-        self.value: np.ndarray | None = None
+        # The state as three floats (the controller's per-frame path reads and writes floats: update_xyz);
+        # ``value`` gives it as an array.
+        self._xyz: tuple[float, float, float] | None = None
         self.t: float | None = None
 
+    @property
+    def value(self) -> np.ndarray | None:
+        """The filtered unit vector (a new array), None before the first update."""
+        return None if self._xyz is None else np.array(self._xyz)
+
+    @value.setter
+    def value(self, v: np.ndarray | None) -> None:
+        self._xyz = None if v is None else tuple(np.asarray(v, dtype=float).tolist())
+
     def reset(self) -> None:
-        self.value = None
+        self._xyz = None
         self.t = None
 
     def update(self, t: float, l: np.ndarray) -> np.ndarray:  # noqa: E741
-        if self.value is None or self.t is None or not (0.0 < t - self.t <= self.max_dt):
-            self.value = np.asarray(l, dtype=float).copy()
+        return np.array(self.update_xyz(t, *np.asarray(l, dtype=float).tolist()))
+
+    def update_xyz(self, t: float, lx: float, ly: float, lz: float) -> tuple[float, float, float]:
+        """:meth:`update` on three floats, returning three floats (the same values, bit for bit)."""
+        v = self._xyz
+        if v is None or self.t is None or not (0.0 < t - self.t <= self.max_dt):
+            v = (lx, ly, lz)
         else:
             alpha = 1.0 - math.exp(-2.0 * math.pi * self.cutoff_hz * (t - self.t))
             # Scalar math (the same operations as the array form, bit for bit): this runs every frame.
-            (ox, oy, oz), (lx, ly, lz) = self.value.tolist(), np.asarray(l, dtype=float).tolist()
+            ox, oy, oz = v
             vx, vy, vz = ox + alpha * (lx - ox), oy + alpha * (ly - oy), oz + alpha * (lz - oz)
             nv = math.sqrt(vx * vx + vy * vy + vz * vz)
             # Opposite vectors can cancel; then the new measurement is all we have.
-            self.value = np.array([vx / nv, vy / nv, vz / nv]) if nv > 1e-9 else np.asarray(l, dtype=float).copy()
+            v = (vx / nv, vy / nv, vz / nv) if nv > 1e-9 else (lx, ly, lz)
+        self._xyz = v
         self.t = t
-        return self.value
+        return v
 
 
 @dataclass(frozen=True)

@@ -53,10 +53,11 @@ def test_still_frozen_and_missing_arguments_still_raise() -> None:
 
 def test_refuses_classes_it_cannot_copy_exactly() -> None:
     @dataclasses.dataclass(frozen=True, slots=True)
-    class Validated:
+    class WithInitVar:
         a: float
+        b: dataclasses.InitVar[float] = 0.0
 
-        def __post_init__(self) -> None:
+        def __post_init__(self, b: float) -> None:
             pass
 
     @dataclasses.dataclass(frozen=True)
@@ -67,7 +68,7 @@ def test_refuses_classes_it_cannot_copy_exactly() -> None:
     class Factory:
         a: list = dataclasses.field(default_factory=list)
 
-    for cls in (Validated, NoSlots, Factory):
+    for cls in (WithInitVar, NoSlots, Factory):
         with pytest.raises(TypeError, match="fast_init"):
             fast_init(cls)
 
@@ -98,3 +99,23 @@ def test_the_project_classes_keep_their_values_and_stay_frozen() -> None:
     assert math.isnan(objs[-1][0].v_rel)
     assert CoreStep(objs[3][0]).passes_confirmed == 0
     assert BoundingBox.from_xyxy(10.0, 20.0, 30.0, 60.0) == BoundingBox(20.0, 40.0, 20.0, 40.0)
+
+
+def test_post_init_runs_last() -> None:
+    """A class that validates in __post_init__ keeps validating: it runs after every field is set."""
+
+    @fast_init
+    @dataclasses.dataclass(frozen=True, slots=True)
+    class Validated:
+        a: float
+        b: float = 1.0
+
+        def __post_init__(self) -> None:
+            if not self.a < self.b:
+                raise ValueError("need a < b")
+
+    assert (Validated(0.5).a, Validated(0.5).b, Validated(1.0, b=2.0).b) == (0.5, 1.0, 2.0)
+    with pytest.raises(ValueError, match="a < b"):
+        Validated(3.0)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        Validated(0.5).a = 0.0  # type: ignore[misc]

@@ -137,6 +137,18 @@ def test_dot_method_is_the_matmul_operator() -> None:
     for n in (4, 9, 16, 40):  # the barometric window's slope
         a, b = RNG.normal(size=n), RNG.normal(size=n)
         assert float(a.dot(b)) == float(a @ b)
+    # The simulated camera's shapes: a transposed product, the rim basis through it, the rim samples, K's view.
+    K2T = np.array([[410.0, 0.0, 321.3], [0.0, 405.5, 238.7]])[:2, :2].T
+    for _ in range(500):
+        R, M, v = RNG.normal(size=(3, 3)), RNG.normal(size=(3, 3)), RNG.normal(size=3)
+        Rc = (R @ M).T
+        assert Rc.tobytes() == R.dot(M).T.tobytes() and (Rc @ v).tobytes() == Rc.dot(v).tobytes()
+        ab = RNG.normal(size=(2, 3))
+        assert (ab @ Rc.T).tobytes() == ab.dot(Rc.T).tobytes()
+        for n in (32, 128):
+            cs = RNG.normal(size=(n, 2))
+            assert (cs @ ab).tobytes() == cs.dot(ab).tobytes()
+            assert (cs @ K2T).tobytes() == cs.dot(K2T).tobytes()
 
 
 def test_flat_reshaped_rotation_is_the_nested_one() -> None:
@@ -179,3 +191,33 @@ def test_cross_xyz_is_np_cross() -> None:
     pairs += [(RNG.normal(size=3), RNG.normal(size=3)) for _ in range(1000)]
     for a, b in pairs:
         assert np.array(cross_xyz(a.tolist(), b.tolist())).tobytes() == np.cross(a, b).tobytes(), (a, b)
+
+
+@pytest.mark.parametrize("dist", [None, [-0.1, 0.02, 0.0, 0.0, 0.0]])
+def test_ray_angle_is_the_angle_of_the_rays(dist: list[float] | None) -> None:
+    """CameraModel.ray_angle (the closing-speed range's two angles a frame) is atan2(|a x b|, a . b) of the two
+    ray_cam_xyz rays, bit for bit."""
+    cam = _camera(dist)
+    for u0, v0, u1, v1 in RNG.uniform([-50, -50, -50, -50], [700, 530, 700, 530], size=(300, 4)).tolist():
+        (ax, ay, az), (bx, by, bz) = cam.ray_cam_xyz(u0, v0), cam.ray_cam_xyz(u1, v1)
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        assert cam.ray_angle(u0, v0, u1, v1) == math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz),
+                                                            ax * bx + ay * by + az * bz)
+
+
+def test_one_array_of_two_factors_gives_the_same_product() -> None:
+    """solve multiplies R_W_PN by R_y(phi) R_x(theta) as the two halves of one (2, 3, 3) array: BLAS gets the same
+    operands and gives the same product as from two arrays, bit for bit (signed zeros included)."""
+    for _ in range(3000):
+        A, B = RNG.normal(size=(3, 3)), RNG.normal(size=(3, 3))
+        A[RNG.integers(3), RNG.integers(3)] = 0.0
+        B[RNG.integers(3), RNG.integers(3)] = -0.0
+        M = np.array((*A.ravel().tolist(), *B.ravel().tolist())).reshape(2, 3, 3)
+        assert M[0].dot(M[1]).tobytes() == A.dot(B).tobytes()
+    gp = guidance.GuidanceParams(k_pn=3.0, v_rel_bar=15.0, gamma_bar=0.3, f_max=19.6, f_min=1.0)
+    for _ in range(300):
+        los = RNG.normal(size=3) * (1.0, 1.0, 0.3)
+        los /= np.linalg.norm(los)
+        sol = guidance.solve(los, RNG.normal(size=3) * 5.0, gp)
+        R = guidance.pn_frame(los).dot(guidance._R_y_R_x(sol.phi, sol.theta))
+        assert sol.R_W_B.tobytes() == R.tobytes()

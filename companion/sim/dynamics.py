@@ -198,14 +198,16 @@ class Quadrotor:
         if not dt > 0.0:
             raise ValueError(f"Quadrotor.step: dt must be > 0 (got {dt})")
         p = self.params
-        c0, c1, c2, c3 = float(q_cmd[0]), float(q_cmd[1]), float(q_cmd[2]), float(q_cmd[3])
+        # tolist: the same floats as float() of each element, in one call (every frame)
+        c0, c1, c2, c3 = q_cmd.tolist() if type(q_cmd) is np.ndarray else (float(c) for c in q_cmd[:4])
         nrm = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3)
         if not (nrm > 1e-9 and math.isfinite(nrm)):
             raise ValueError(f"Quadrotor.step: q_cmd is not a quaternion (got {q_cmd})")
         qc = (c0 / nrm, c1 / nrm, c2 / nrm, c3 / nrm)
         thr = min(max(float(thrust_norm), 0.0), 1.0)
         f_cmd = min(thr * G / p.hover_thrust, p.f_max)
-        wind = (0.0, 0.0, 0.0) if wind_enu is None else (float(wind_enu[0]), float(wind_enu[1]), float(wind_enu[2]))
+        wind = (0.0, 0.0, 0.0) if wind_enu is None else (
+            tuple(wind_enu.tolist()) if type(wind_enu) is np.ndarray else tuple(float(c) for c in wind_enu[:3]))
         coeffs = self._coeffs.get(dt)
         if coeffs is None:
             n = max(1, math.ceil(dt / p.max_step - 1e-9))

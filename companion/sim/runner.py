@@ -208,24 +208,11 @@ class _BaselineOut:
     lambda_dot: float = math.nan
 
 
-_CAMERA_MODELS: dict[int, tuple[Any, Any]] = {}  # id(camera section) -> (the section, its CameraModel)
-
-
 def _camera_model(cfg: Config) -> Any:
-    """The true camera's model (``true_camera_config``), built once per (frozen) camera section: building it
-    (intrinsics, the mount's rotation through scipy) cost ~1 % of a short run. The section is kept with its
-    model, so its id is not reused while cached."""
-    from perception.los import CameraModel
+    """The true camera's model (``true_camera_config``), built once per (frozen) camera section."""
+    from companion.config import camera_model
 
-    cam = true_camera_config(cfg)
-    hit = _CAMERA_MODELS.get(id(cam))
-    if hit is not None and hit[0] is cam:
-        return hit[1]
-    if len(_CAMERA_MODELS) >= 16:  # a mount error builds a new section per run: keep the cache small
-        _CAMERA_MODELS.clear()
-    model = CameraModel.from_config(cam)
-    _CAMERA_MODELS[id(cam)] = (cam, model)
-    return model
+    return camera_model(true_camera_config(cfg))
 
 
 # Engagement ends -> the run's end reason (when the gate plane was not crossed).

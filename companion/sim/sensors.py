@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from companion.sim.dynamics import qmul, quat_to_matrix, rotvec_to_matrix
+from perception.fastinit import fast_init
 
 # ENU -> NED and FLU -> FRD as quaternions (xyzw): both are half turns, so
 # R_ned_frd = P R_enu_flu F  <=>  q_ned_frd = q_P * q * q_F.
@@ -21,7 +22,8 @@ _Q_P = (math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0)  # pi about (1, 1, 0) / sqrt(2
 _Q_F = (1.0, 0.0, 0.0, 0.0)  # pi about x
 
 
-@dataclass(frozen=True)
+@fast_init  # one a frame: the slot-descriptor __init__ (perception/fastinit.py)
+@dataclass(frozen=True, slots=True)
 class ImuSample:
     accel: np.ndarray  # specific force, body FLU, m/s^2
     gyro: np.ndarray  # body FLU, rad/s

@@ -208,13 +208,13 @@ def test_true_vrel_ablation_feeds_the_true_closing_speed(monkeypatch):
     import companion.guidance as guidance
 
     seen: list[float] = []
-    orig = guidance.pn_demand
+    orig = guidance.pn_demand_xyz  # the controller's per-frame form of pn_demand
 
     def spy(lambda_dot, n, k_pn, v_rel_bar):
         seen.append(v_rel_bar)
         return orig(lambda_dot, n, k_pn, v_rel_bar)
 
-    monkeypatch.setattr(guidance, "pn_demand", spy)
+    monkeypatch.setattr(guidance, "pn_demand_xyz", spy)
     fixed = with_overrides(CFG, {"guidance": {"closing_speed": "fixed"}})
     run_once(fixed, RunSpec("stationary", 3))
     assert set(seen) == {CFG.guidance.v_rel_bar}  # the paper: a constant
