@@ -228,10 +228,13 @@ def test_the_apps_own_refusals_are_read_from_the_log(flight: Path, tmp_path: Pat
     shutil.copytree(flight, dst)
     with (dst / "detections.csv").open(newline="") as f:
         valid = {float(r["t_frame"]) for r in csv.DictReader(f) if r["valid"] == "1"}
+    with (dst / "setpoints.csv").open(newline="") as f:  # the phase of each frame, as the tool reads it
+        engage = {float(r["t_frame"]) for r in csv.DictReader(f) if r["state"] == "ENGAGE"}
     p = dst / "los.csv"
     with p.open(newline="") as f:
         rows = list(csv.DictReader(f))
-    marked = [r for r in rows if float(r["t_frame"]) in valid][::4]  # every 4th controller frame with a box
+    # Every 4th controller frame with a box in ENGAGE (a controller row may also be a frame the core left ENGAGE on).
+    marked = [r for r in rows if float(r["t_frame"]) in valid & engage][::4]
     assert len(marked) >= 5
     for r in marked:
         r["rejected"] = "no box"
