@@ -635,7 +635,7 @@ def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min:
     rows = ((b0, -b1, -b2), (a0, -a1, -a2), (-c0, c1, c2))
     roll, pitch, yaw = euler_ned_deg_from_rows(rows)
     R = np.array((b0, -b1, -b2, a0, -a1, -a2, -c0, c1, c2)).reshape(3, 3)  # the rows, flat: cheaper than nested
-    return Setpoint(roll, pitch, yaw, min(1.0, max(thrust_min, hover_thrust * f_th / G)), R)  # normalised_thrust
+    return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R)
 
 
 def hover_setpoint(yaw_deg: float, hover_thrust: float) -> Setpoint:

@@ -73,21 +73,9 @@ class CameraModel:
 
     def ray_angle(self, u0: float, v0: float, u1: float, v1: float) -> float:
         """The angle (rad) between the rays through pixels (u0, v0) and (u1, v1): ``atan2(|a x b|, a . b)`` of
-        their :meth:`ray_cam_xyz`, the same floats; written out for an undistorted camera (the closing speed's
-        range takes two a frame, and the calls cost more than the arithmetic)."""
-        if self._distorted:  # type: ignore[attr-defined]
-            ax, ay, az = self.ray_cam_xyz(u0, v0)
-            bx, by, bz = self.ray_cam_xyz(u1, v1)
-        else:
-            k00, k01, k02, k11, k12 = self._K_inv_scalars  # type: ignore[attr-defined]
-            x = k00 * u0 + k01 * v0 + k02
-            y = k11 * v0 + k12
-            n = math.sqrt(x * x + y * y + 1.0)
-            ax, ay, az = x / n, y / n, 1.0 / n
-            x = k00 * u1 + k01 * v1 + k02
-            y = k11 * v1 + k12
-            n = math.sqrt(x * x + y * y + 1.0)
-            bx, by, bz = x / n, y / n, 1.0 / n
+        their :meth:`ray_cam_xyz`, in floats (the closing speed's range takes two a frame)."""
+        ax, ay, az = self.ray_cam_xyz(u0, v0)
+        bx, by, bz = self.ray_cam_xyz(u1, v1)
         cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
         return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
 
