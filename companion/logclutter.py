@@ -306,12 +306,29 @@ def clutter_of(folder: str | Path, margin: float = MARGIN_PX) -> dict[str, Any]:
     # took clutter for the gate) is another failure than one that steered it away from the gate.
     t_cross = [c.t for c in flight_crossings(flight)]
     d["passes_claimed_wrong_after_crossing"] = sum(w and any(tc < tq for tc in t_cross) for tq, w in d.pop("closes"))
+    d["engaged_after_crossing_s"] = engaged_after_crossing(rows, t_cross)
     d["attitude"] = d_att
     tr = flight.summary.get("truth") if isinstance(flight.summary, dict) else None
     d["through"] = bool(tr.get("through")) if isinstance(tr, dict) else None
     d["outcome"] = f"{flight.summary.get('outcome', '?')} {flight.summary.get('reason', '')}".strip()
     d["folder"] = str(folder)
     return d
+
+
+LATE_S = 0.2  # s in ENGAGE after the crossing worth a line (a frame or two of a box is the detector's lag)
+
+
+def engaged_after_crossing(rows: list[FrameRow], t_cross: list[float]) -> float | None:
+    """Seconds the vehicle was still in ENGAGE (PN steering at whatever box it had) after it first crossed the
+    gate's plane: from the crossing to the last ENGAGE frame after it; 0.0 when it left ENGAGE before; None when
+    it never crossed. On PX4's SIH quad (2026-12-06) the detector's boxes after a crossing were the ring's last
+    sliver and then background boxes ~2 m "away" that neither grew nor shrank, and the app steered at them for up
+    to 1.3 s before it claimed the pass: the pass was true, the flight after it was not at the gate."""
+    if not t_cross:
+        return None
+    t_c = t_cross[0]
+    after = [r.t for r in rows if r.phase == "ENGAGE" and r.t > t_c]
+    return round(max(after) - t_c, 3) if after else 0.0
 
 
 def flight_folders(paths: list[str]) -> list[Path]:
@@ -360,6 +377,11 @@ def report(paths: list[str], margin: float = MARGIN_PX,
     tot["runs_through"] = sum(bool(d["through"]) for d in per)
     tot["runs_with_wrong"] = sum(_wrong(d) for d in per)
     tot["margin_px"] = margin
+    late = np.array([d["engaged_after_crossing_s"] for d in per if d.get("engaged_after_crossing_s") is not None])
+    tot["runs_crossed"] = len(late)
+    tot["runs_engaged_over_0.2s_after_crossing"] = int((late > LATE_S).sum())
+    tot["engaged_after_crossing_s_p50_95_max"] = ([round(float(x), 2) for x in (*np.percentile(late, (50, 95)),
+                                                                                late.max())] if len(late) else None)
     tot["on_gate_iou_p5_50_95_99"] = [round(float(x), 3) for x in np.percentile(ious, q)] if len(ious) else None
     tot["on_gate_centre_px_p5_50_95_99"] = ([round(float(x), 1) for x in np.percentile(dists, q)]
                                             if len(dists) else None)
@@ -373,7 +395,9 @@ def run_line(d: dict[str, Any]) -> str:
             f"claimed on wrong {d['passes_claimed_wrong']}/{d['passes_claimed']}, never engaged while gate in view "
             f"{d['never_engaged_spells']}, lock rejected {d['lock_rejected']}"
             + (f" (claimed on wrong after crossing the gate's plane: {d['passes_claimed_wrong_after_crossing']})"
-               if d["passes_claimed_wrong"] else ""))
+               if d["passes_claimed_wrong"] else "")
+            + (f"; engaged {late:.2f} s after crossing the gate's plane"
+               if (late := d.get("engaged_after_crossing_s")) else ""))
 
 
 def register(lsub: Any) -> None:
@@ -402,7 +426,7 @@ def _cmd(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     for d in per:
-        if args.all or _wrong(d):
+        if args.all or _wrong(d) or (d.get("engaged_after_crossing_s") or 0.0) > LATE_S:
             print(run_line(d))
     out: dict[str, Any] = {"total": tot}
     if args.json:

@@ -266,3 +266,30 @@ def test_a_flight_without_frames_is_left_out_of_a_table_not_the_end_of_it(flight
     assert len(skipped) == 1 and str(bad) in skipped[0] and "no detections rows" in skipped[0], skipped
     with pytest.raises(ValueError, match="no detections rows"):
         lc.report([str(bad)])
+
+
+def _row(t: float, phase: str) -> lc.FrameRow:
+    return lc.FrameRow(t, None, phase, (), None, np.array([1.0, 0.0, 0.0, 0.0]))
+
+
+def test_time_engaged_after_the_crossing_by_hand() -> None:
+    rows = [_row(1.0 + 0.1 * k, "ENGAGE") for k in range(11)] + [_row(2.1, "PASS"), _row(2.2, "RECOVER")]
+    assert lc.engaged_after_crossing(rows, [1.45]) == pytest.approx(0.55)  # ENGAGE frames at 1.5 .. 2.0
+    assert lc.engaged_after_crossing(rows, [2.05]) == 0.0  # left ENGAGE before the crossing
+    assert lc.engaged_after_crossing(rows, [1.45, 1.95]) == pytest.approx(0.55)  # the first crossing counts
+    assert lc.engaged_after_crossing(rows, []) is None  # never crossed
+
+
+def test_the_flown_logs_time_engaged_after_the_crossing(flight: Path) -> None:
+    """Against the log's own files: the judge's crossing (summary.json) and the last ENGAGE setpoint's frame time."""
+    per, tot = lc.report([str(flight)])
+    (d,) = per
+    fl = read_flight(flight)
+    gates = [g for g in fl.summary["truth"]["gates"] if g.get("crossed")]
+    assert gates, "the CI flight crosses its gate's plane"
+    t_c = float(gates[0]["t_monotonic_s"]) - float(fl.meta["t0_monotonic"])
+    with (flight / "setpoints.csv").open() as f:
+        late = [float(r["t_frame"]) for r in csv.DictReader(f) if r["state"] == "ENGAGE" and float(r["t_frame"]) > t_c]
+    want = max(late) - t_c if late else 0.0
+    assert d["engaged_after_crossing_s"] == pytest.approx(want, abs=1e-3), (d["engaged_after_crossing_s"], want)
+    assert tot["runs_crossed"] == 1 and tot["engaged_after_crossing_s_p50_95_max"][2] == pytest.approx(want, abs=1e-2)
