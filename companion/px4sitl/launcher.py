@@ -325,14 +325,17 @@ class PX4Sitl:
             raise
         return self
 
-    def wait_preflight(self, timeout: float = 120.0) -> float:
-        """Block until PX4's pre-flight checks pass (it would arm now). Returns the seconds since start."""
+    def wait_preflight(self, timeout: float = 120.0, passes: int = 1) -> float:
+        """Block until PX4's pre-flight checks pass (it would arm now) ``passes`` times in a row, 2 s apart.
+        Returns the seconds since start."""
         deadline = time.monotonic() + timeout
         last = ""
+        ok = 0
         while time.monotonic() < deadline:
             self._check_alive()
             last = self.client("commander", "check", check=False).strip()
-            if "Preflight check: OK" in last:
+            ok = ok + 1 if "Preflight check: OK" in last else 0
+            if ok >= passes:
                 return time.monotonic() - self.t_start
             time.sleep(2.0)
         raise PX4SitlError(f"PX4 instance {self.instance}: pre-flight checks did not pass within {timeout:.0f} s "
@@ -423,7 +426,9 @@ class PX4Sitl:
             time.sleep(1.0)
         if self.status().nav_mode != "Hold":
             self.client("commander", "mode", "auto:loiter", check=False)
-        self.wait_preflight(max(10.0, deadline - time.monotonic()))
+        # Twice, 2 s apart: after a landing PX4's "height estimate not stable" comes and goes, and one passing
+        # check was followed by "Arming denied: Resolve system health failures first" (CI, 2026-12-06, loaded).
+        self.wait_preflight(max(10.0, deadline - time.monotonic()), passes=2)
 
     def console_tail(self, lines: int = 8) -> str:
         """The last lines PX4 printed, joined by " | " (for error messages)."""
