@@ -45,6 +45,11 @@ class ClosingParams:
     border: float = 1.0  # px; a box this close to the image border is cut: no range from it
     loop_lag: float = 0.0  # s, vehicle attitude response + filter lags; 0 = no range-based gain limit
     lag_margin: float = 1.0  # the PN loop's crossover kept below 1 / (lag_margin * loop_lag)
+    # A box whose larger side reaches this fraction of the image's smaller side gives no range (0 = off): a ring
+    # that near fills the view, its box saturates at the image and then gives way to background boxes of the same
+    # size, and the range they say stays at ~2 m while the vehicle flies through (docs/verification-px4.md). From
+    # there the range is dead-reckoned with the IMU.
+    max_box: float = 0.0
 
 
 class ClosingSpeedEstimator:
@@ -61,6 +66,8 @@ class ClosingSpeedEstimator:
         self._x: tuple[float, float] | None = None
         self._P: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.t: float | None = None
+        self.t_range: float | None = None  # time of the last range measured from a box
+        self.filled = False  # a box reached max_box: the ring fills the view; no range from any box after it
 
     @property
     def x(self) -> np.ndarray | None:
@@ -116,6 +123,9 @@ class ClosingSpeedEstimator:
         the larger one is the ring's diameter (a tilted ring is foreshortened along the other axis only, which
         makes the range too long and the closing speed too high: the safe side for PN)."""
         cam, b = self.camera, self.p.border
+        if self.p.max_box > 0.0 and (self.filled or max(box.w, box.h) >= self.p.max_box * min(cam.width, cam.height)):
+            self.filled = True
+            return None
         x0, y0, x1, y1 = box.xyxy
         alpha = 0.0
         # The angle between the rays through opposite edges (CameraModel.ray_angle: floats, no arrays).
@@ -152,6 +162,7 @@ class ClosingSpeedEstimator:
             if predicted:
                 self._x, self._P = (x0, x1), (p00, p01, p11)
             return
+        self.t_range = t
         size = max(box.w, box.h)
         sigma = d * (p.pixel_noise * math.sqrt(2.0) / size + p.size_noise)
         if self._x is None:

@@ -180,6 +180,11 @@ class GuidanceConfig(Section):
         5.0, ge=1.0, le=10.0, description="relative-speed estimate x this in the PN law, before the caps v_rel_bar and "
         "the lag cap (1.5 cut jitter most but lost moving gates on the SIH profile: docs/guidance.md)"
     )
+    closing_max_box: Number = Field(
+        0.8, ge=0.0, le=1.0, description="a box whose larger side reaches this fraction of the image's smaller side "
+        "gives the closing-speed filter no range (the ring fills the view; from there the range is dead-reckoned "
+        "with the IMU); 0 = off"
+    )
     lag_margin: Number = Field(
         1.0, ge=0.0, le=20.0, description="near the gate the PN gain is capped so its loop gain N / t_go stays below "
         "1 / (this x the loop lag: airframe.response_time + the LOS filters); 0 = off"

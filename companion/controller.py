@@ -113,7 +113,8 @@ def closing_params(cfg: Config) -> ClosingParams | None:
     if cfg.los_filter.rate_cutoff > 0.0:
         lag += 1.0 / (2.0 * math.pi * cfg.los_filter.rate_cutoff)
     return ClosingParams(gate_radius=g.gate_radius, v_rel_bar=g.v_rel_bar, margin=g.closing_margin,
-                         loop_lag=lag if g.lag_margin > 0.0 else 0.0, lag_margin=max(g.lag_margin, 1e-9))
+                         loop_lag=lag if g.lag_margin > 0.0 else 0.0, lag_margin=max(g.lag_margin, 1e-9),
+                         max_box=g.closing_max_box)
 
 
 class PNController:
@@ -220,6 +221,15 @@ class PNController:
         return est.state[1], math.sqrt(max(est.P_vv, 0.0))
 
     @property
+    def closing_estimate(self) -> tuple[float, float, float | None] | None:
+        """The closing-speed filter's range (m) and range rate (m/s) as of the last frame, and when it last measured
+        a range from a box (None: never); None without the filter or before its first range."""
+        est = self._closing
+        if est is None or est.state is None:
+            return None
+        return est.state[0], est.state[1], est.t_range
+
+    @property
     def drag_enu(self) -> np.ndarray | None:
         """The filtered aerodynamic acceleration (world ENU, m/s^2) the accelerometer measured, or None (no
         accelerometer given, or drag_compensation off). The straight pass cancels it."""
@@ -318,7 +328,9 @@ class PNController:
                 self._kf.reset()
             self._l_prev_xyz = None
             self._w = None
-            if self._closing is not None:
+            if self._closing is not None and not self._closing.filled:
+                # (Once the ring filled the view a LOS jump is the ring leaving it, not a new target: the range
+                # stays dead-reckoned.)
                 self._closing.reset()
             return None
         return f"LOS jump ({math.degrees(angle):.1f} deg in {dt * 1e3:.0f} ms)"

@@ -91,6 +91,10 @@ class Steering(Protocol):
         """The closing-speed filter's (range rate, its std dev) in m/s, or None (no filter): the target lock's
         speed bound."""
 
+    @property
+    def closing_estimate(self) -> tuple[float, float, float | None] | None:
+        """The closing-speed filter's (range m, range rate m/s, time of its last range from a box), or None."""
+
 
 @fast_init
 @dataclass(frozen=True, slots=True)
@@ -136,6 +140,11 @@ class EngagementParams:
     # pixels (roll-setpoint RMS rate 142 -> 99 deg/s on SIH, 156 -> 111 on the x500 with 3 px).
     cut_edge_px: float = 3.0
     frame_rate: float = 30.0  # Hz, the camera's configured rate (the close detector's window)
+    # Close on the filter's dead-reckoned time-to-contact while the image gives it no range (app.close_reckoning),
+    # for at most reckon_max s after its last range: the IMU's drift is not trusted longer.
+    reckon_close: bool = False
+    reckon_max: float = 1.0  # s
+    reckon_ttc: float = 0.0  # s: close when the dead-reckoned time-to-contact is at most this
 
     @classmethod
     def from_config(cls, cfg: Config, hover_thrust: float | None = None, f_min: float | None = None,
@@ -150,7 +159,7 @@ class EngagementParams:
                    cfg.airframe.hover_thrust if hover_thrust is None else hover_thrust, cfg.airframe.thrust_min,
                    cfg.airframe.f_min if f_min is None else f_min, cfg.airframe.f_max if f_max is None else f_max,
                    cfg.camera.width, cfg.camera.height, math.radians(cfg.airframe.max_tilt),
-                   frame_rate=cfg.camera.rate)
+                   frame_rate=cfg.camera.rate, reckon_close=a.close_reckoning)
 
 
 @dataclass
@@ -378,6 +387,8 @@ class Engagement:
             t, box if valid else None, est.ttc, self._los_enu, baro, self.limits.climb_rate, q)
         if fire is not None:
             est, why = replace(est, close=True, why=fire.why), f"gate close: {fire.why}"
+        elif not est.close and (reckoned := self._reckoned(t)):
+            why = f"gate close: {reckoned}"
         elif not est.close and not valid and not self._rejected_now and (near := self._near(t, est)):
             # The gate vanished while close (a detector often loses a ring that fills the image, a slow vehicle's
             # ring leaves across a border): the pass has begun. Without this the controller would coast until
@@ -496,6 +507,27 @@ class Engagement:
         near = (c.trigger in ("ttc", "either") and ttc < p.near_factor * c.ttc_threshold) or (
             c.trigger in ("size", "either") and size > c.size_threshold / p.near_factor)
         return size if near else 0.0
+
+    def _reckoned(self, t: float) -> str:
+        """The time-to-contact the closing-speed filter dead-reckons with the IMU, when it is below the close
+        trigger's threshold while the image gives no range (the ring fills the view, or no box) and the gate's
+        box was near (at least ``lost_min_size`` of the width in the last ``near_window``): why, or ""."""
+        p, c = self.params, self.close
+        if not p.reckon_close or p.on_close != "fly_through" or c.trigger not in ("ttc", "either"):
+            return ""
+        est = getattr(self.controller, "closing_estimate", None)
+        if est is None:
+            return ""
+        d, d_dot, t_range = est
+        if t_range is None or not (0.0 < t - t_range <= p.reckon_max) or d_dot > -0.5:
+            return ""
+        if c.peak(t, p.near_window) < p.lost_min_size:
+            return ""
+        ttc = max(d, 0.0) / -d_dot
+        if ttc > p.reckon_ttc:
+            return ""
+        return (f"time-to-contact {ttc:.2f} s dead-reckoned with the IMU (no range from the image for "
+                f"{t - t_range:.2f} s; closing at {-d_dot:.1f} m/s)")
 
     def _go(self, phase: Phase, t: float) -> None:
         self.phase = phase

@@ -127,3 +127,22 @@ def test_no_accelerometer_no_drag_compensation() -> None:
     for k in range(5):
         o = c.step(k / 30, BoundingBox(320, 240, 30, 30), LEVEL_Q)
     assert np.allclose(o.a_n, 0.0)
+
+
+def test_a_box_filling_the_view_ends_the_ranges_until_reset() -> None:
+    """A ring whose box reaches ``max_box`` of the image's smaller side fills the view: from then on no box gives a
+    range (the background boxes after a crossing are the same size and say "2 m away"); the filter dead-reckons."""
+    est = ClosingSpeedEstimator(ClosingParams(gate_radius=1.0, v_rel_bar=15.0, max_box=0.8), MODEL)
+    small, big = BoundingBox(320, 240, 100, 100), BoundingBox(320, 240, 0.8 * 480 + 1, 0.8 * 480 + 1)
+    assert est.range_from_box(small) is not None and not est.filled
+    est.update(0.0, small)
+    est.update(0.1, big)
+    assert est.filled and est.t_range == 0.0  # the big box gave no range
+    assert est.range_from_box(small) is None  # nor does any box after it
+    d0, v0 = est.state
+    est.update(0.2, small, 0.0)
+    assert est.t_range == 0.0 and est.state == pytest.approx((d0 + 0.1 * v0, v0))  # predicted only
+    est.reset()
+    assert not est.filled and est.range_from_box(small) is not None
+    off = ClosingSpeedEstimator(ClosingParams(gate_radius=1.0, v_rel_bar=15.0), MODEL)  # max_box 0: off
+    assert off.range_from_box(BoundingBox(320, 240, 470, 470)) is not None and not off.filled

@@ -271,3 +271,38 @@ def test_the_tracker_is_told_to_drop_a_target_the_engagement_keeps_refusing():
         t += DT
         assert not eng.drop_tracker
     assert eng.phase is Phase.ENGAGE and eng.refused == 9
+
+
+def test_the_gate_plane_reached_by_dead_reckoning_closes_the_engagement():
+    """PX4 SIH (2026-12-06): after the ring filled the view, the detector's boxes were background of the same size
+    ("2 m away", neither growing nor shrinking) and the app steered at them for up to 1.2 s after the crossing. An
+    approach at 7 m/s (the IMU: unaccelerated) until the ring's box reaches 0.8 of the image height, then such boxes:
+    the filter takes no range from them and dead-reckons; the engagement closes when that range is spent, within a
+    frame of the time the last range and the speed give. With ``app.close_reckoning=false`` it steers on."""
+    imu = np.array([0.0, 0.0, -9.80665])  # FRD specific force of level, unaccelerated flight
+    v = 7.0
+
+    def run(*overrides: str) -> tuple[list, float]:
+        cfg = load_config([], list(overrides))
+        eng = Engagement.from_config(cfg, PNController.from_config(cfg))
+        t, d, decs, t_fill = 0.0, 20.0, [], math.nan
+        while t < 4.0:
+            s = 2.0 * F / d
+            if math.isnan(t_fill) and s < 0.8 * 480:
+                b = box(s)
+            else:  # the ring fills the view; then a background box that stays put
+                t_fill = t if math.isnan(t_fill) else t_fill
+                b = box(400.0)
+            decs.append(eng.step(t, b, LEVEL, 10.0, accel_frd=imu, t_now=t))
+            t, d = t + DT, d - v * DT
+        return decs, t_fill
+
+    decs, t_fill = run()
+    close = next(x for x in decs if x.phase is Phase.PASS and x.changed)
+    assert "dead-reckoned" in close.why, close.why
+    d_fill = 2.0 * F / (0.8 * 480)  # ~2.5 m: the last range is at most one frame before t_fill
+    assert t_fill - DT <= close.t <= t_fill + d_fill / v + 2 * DT, (close.t, t_fill, d_fill / v)
+    assert abs(close.t - 20.0 / v) <= 2 * DT, (close.t, 20.0 / v)  # and the plane is reached then (truth)
+    decs, _ = run("app.close_reckoning=false")
+    assert not any(x.phase is Phase.PASS for x in decs)  # without it: still steering at the background box
+    assert decs[-1].phase is Phase.ENGAGE

@@ -155,6 +155,10 @@ class _Steering:
         return None if self.kind == "baseline" else self.ctrl.closing_rate
 
     @property
+    def closing_estimate(self) -> tuple[float, float, float | None] | None:
+        return None if self.kind == "baseline" else self.ctrl.closing_estimate
+
+    @property
     def p(self) -> Any:
         """The PN controller's parameters (the core's hover estimate updates them); none for the baseline."""
         if self.kind == "baseline":
