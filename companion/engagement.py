@@ -509,9 +509,9 @@ class Engagement:
         return size if near else 0.0
 
     def _reckoned(self, t: float) -> str:
-        """The time-to-contact the closing-speed filter dead-reckons with the IMU, when it is below the close
-        trigger's threshold while the image gives no range (the ring fills the view, or no box) and the gate's
-        box was near (at least ``lost_min_size`` of the width in the last ``near_window``): why, or ""."""
+        """The time-to-contact the closing-speed filter dead-reckons with the IMU, when it is at most ``reckon_ttc``
+        (0: the gate plane reached) while the image gives no range (the ring filled the view, or no box) and the
+        gate's box was near (at least ``lost_min_size`` of the width in the last ``near_window``): why, or ""."""
         p, c = self.params, self.close
         if not p.reckon_close or p.on_close != "fly_through" or c.trigger not in ("ttc", "either"):
             return ""
