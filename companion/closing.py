@@ -123,8 +123,7 @@ class ClosingSpeedEstimator:
         the larger one is the ring's diameter (a tilted ring is foreshortened along the other axis only, which
         makes the range too long and the closing speed too high: the safe side for PN)."""
         cam, b = self.camera, self.p.border
-        if self.p.max_box > 0.0 and (self.filled or max(box.w, box.h) >= self.p.max_box * min(cam.width, cam.height)):
-            self.filled = True
+        if self.filled or self._fills(box):
             return None
         x0, y0, x1, y1 = box.xyxy
         alpha = 0.0
@@ -136,6 +135,11 @@ class ClosingSpeedEstimator:
         if not (1e-6 < alpha < math.pi * 0.9):
             return None
         return self.p.gate_radius / math.tan(0.5 * alpha)
+
+    def _fills(self, box: BoundingBox) -> bool:
+        """The box reaches ``max_box`` of the image's smaller side: the ring fills the view."""
+        cam = self.camera
+        return self.p.max_box > 0.0 and max(box.w, box.h) >= self.p.max_box * min(cam.width, cam.height)
 
     def update(self, t: float, box: BoundingBox | None, range_accel: float | None = None) -> None:
         """Advance to frame time ``t`` with this frame's box (or None); ``range_accel`` is the range
@@ -157,6 +161,8 @@ class ClosingSpeedEstimator:
             predicted = True
         if self.t is None or t > self.t:
             self.t = t
+        if box is not None and not self.filled and self._fills(box):
+            self.filled = True  # no range from any box until reset
         d = self.range_from_box(box) if box is not None else None
         if d is None:
             if predicted:

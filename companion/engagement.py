@@ -515,7 +515,7 @@ class Engagement:
         p, c = self.params, self.close
         if not p.reckon_close or p.on_close != "fly_through" or c.trigger not in ("ttc", "either"):
             return ""
-        est = getattr(self.controller, "closing_estimate", None)
+        est = self.controller.closing_estimate
         if est is None:
             return ""
         d, d_dot, t_range = est
