@@ -491,7 +491,13 @@ class VehicleLink(TelemetryStreams, OffboardStreaming):
                 raise TakeoffFailed(f"takeoff interrupted: vehicle switched to {self._flight_mode}{self._why()}")
             return self._flight_mode == "HOLD" and self._landed == "IN_AIR"
 
-        await self._wait_until(done, timeout, f"takeoff to {altitude_m:.1f} m not finished", TakeoffFailed)
+        try:
+            await self._wait_until(done, timeout, f"takeoff to {altitude_m:.1f} m not finished", TakeoffFailed)
+        except TakeoffFailed as e:
+            # Where it stopped tells a slow climb from one that never left the ground (PX4 SITL under load).
+            alt = self.baro_altitude
+            raise TakeoffFailed(f"{e}; {alt:.1f} m above the arming point by the barometer" if alt is not None
+                                else str(e)) from None
 
     async def hold(self, timeout: float | None = None) -> None:
         await self._action_then_mode("hold", "HOLD", lambda: self._action.hold(), timeout)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from companion.app.linkerrors import (
     LinkLost,
     OffboardDenied,
     OffboardLost,
+    TakeoffFailed,
 )
 from companion.config import Config
 from companion.frames import R_ned_frd_from_enu_flu
@@ -82,6 +84,28 @@ def test_arm_takeoff_hold_land_disarm(sim: SimPX4, cfg: Config) -> None:
             assert sim.wait_event("disarm:auto_land", 1.0) is not None
 
     run(body, 80)
+
+
+@pytest.mark.timeout(60)
+def test_a_takeoff_that_does_not_finish_says_how_high_it_got(cfg: Config) -> None:
+    """PX4 climbing slower than the take-off timeout allows (PX4 SITL under load once took > 30 s to 6 m): the
+    error names the altitude reached, by the barometer, which agrees with the simulator's truth."""
+    with SimPX4(cfg, px4_params={"MPC_TKO_SPEED": 0.5}) as sim:
+        async def body() -> None:
+            async with await connected_link(sim, cfg) as link:
+                await link.hover_thrust(timeout=3.0)
+                await link.arm()
+                with pytest.raises(TakeoffFailed) as e:
+                    await link.takeoff(6.0, timeout=4.0)
+                msg = str(e.value)
+                assert msg.startswith("takeoff to 6.0 m not finished (waited 4.0 s; mode TAKEOFF"), msg
+                m = re.search(r"; (-?\d+\.\d) m above the arming point by the barometer$", msg)
+                assert m is not None, msg
+                # 0.5 m/s from the command (the 4 s count from PX4's TAKEOFF): off the ground, far from 6 m
+                assert 0.3 < float(m[1]) < 4.5, msg
+                assert float(m[1]) == pytest.approx(sim.truth().p[2], abs=0.6), (msg, sim.truth().p)
+
+        run(body, 50)
 
 
 @pytest.mark.timeout(90)
