@@ -176,9 +176,10 @@ class AppConfig(Section):
     )
     ttc_threshold: Seconds = Field(0.25, gt=0.0, le=10.0, description="s; box time-to-contact")
     close_reckoning: bool = Field(
-        True, description="also close on the time-to-contact the closing-speed filter dead-reckons with the IMU while "
-        "the image gives it no range (the ring fills the view: guidance.closing_max_box), once the gate's box was "
-        "near; without it a slow vehicle steered at background boxes for up to 1.2 s after the crossing"
+        True, description="also close when the range the closing-speed filter dead-reckons with the IMU, while the "
+        "image gives it no range (the ring fills the view: guidance.closing_max_box), reaches half of "
+        "guidance.gate_radius, once the gate's box was near; without it a slow vehicle steered at background boxes "
+        "for up to 1.2 s after the crossing"
     )
     size_threshold: Number = Field(
         0.95, gt=0.0, le=2.0, description="box size (larger side) as a fraction of the image width; the default "

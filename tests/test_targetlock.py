@@ -297,8 +297,9 @@ def test_the_gate_plane_reached_by_dead_reckoning_closes_the_engagement():
     """PX4 SIH (2026-12-06): after the ring filled the view, the detector's boxes were background of the same size
     ("2 m away", neither growing nor shrinking) and the app steered at them for up to 1.2 s after the crossing. An
     approach at 7 m/s (the IMU: unaccelerated) until the ring's box reaches 0.8 of the image height, then such boxes:
-    the filter takes no range from them and dead-reckons; the engagement closes when that range is spent, within a
-    frame of the time the last range and the speed give. With ``app.close_reckoning=false`` it steers on."""
+    the filter takes no range from them and dead-reckons; the engagement closes when that range reaches half the
+    ring's radius (a pass off the centre never reaches 0), within a frame of the time the last range and the speed
+    give. With ``app.close_reckoning=false`` it steers on."""
     imu = np.array([0.0, 0.0, -9.80665])  # FRD specific force of level, unaccelerated flight
     v = 7.0
 
@@ -322,7 +323,8 @@ def test_the_gate_plane_reached_by_dead_reckoning_closes_the_engagement():
     assert "dead-reckoned" in close.why, close.why
     d_fill = 2.0 * F / (0.8 * 480)  # ~2.5 m: the last range is at most one frame before t_fill
     assert t_fill - DT <= close.t <= t_fill + d_fill / v + 2 * DT, (close.t, t_fill, d_fill / v)
-    assert abs(close.t - 20.0 / v) <= 2 * DT, (close.t, 20.0 / v)  # and the plane is reached then (truth)
+    r_half = 0.5 * load_config([], []).guidance.gate_radius
+    assert abs(close.t - (20.0 - r_half) / v) <= 2 * DT, (close.t, (20.0 - r_half) / v)  # truth: r/2 from the plane
     decs, _ = run("app.close_reckoning=false")
     assert not any(x.phase is Phase.PASS for x in decs)  # without it: still steering at the background box
     assert decs[-1].phase is Phase.ENGAGE
