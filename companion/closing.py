@@ -122,9 +122,13 @@ class ClosingSpeedEstimator:
         Each image axis whose box edges are both inside the image gives the angle the ring subtends along it;
         the larger one is the ring's diameter (a tilted ring is foreshortened along the other axis only, which
         makes the range too long and the closing speed too high: the safe side for PN)."""
-        cam, b = self.camera, self.p.border
         if self.filled or self._fills(box):
             return None
+        return self._range_of(box)
+
+    def _range_of(self, box: BoundingBox) -> float | None:
+        """:meth:`range_from_box` once the fill test has passed (``update`` has just made it: not twice a frame)."""
+        cam, b = self.camera, self.p.border
         x0, y0, x1, y1 = box.xyxy
         alpha = 0.0
         # The angle between the rays through opposite edges (CameraModel.ray_angle: floats, no arrays).
@@ -163,7 +167,8 @@ class ClosingSpeedEstimator:
             self.t = t
         if box is not None and not self.filled and self._fills(box):
             self.filled = True  # no range from any box until reset
-        d = self.range_from_box(box) if box is not None else None
+        # range_from_box(box), its fill test just made above (filled now says it)
+        d = self._range_of(box) if box is not None and not self.filled else None
         if d is None:
             if predicted:
                 self._x, self._P = (x0, x1), (p00, p01, p11)

@@ -55,10 +55,10 @@ class VerifyParams:
 
     @classmethod
     def from_config(cls, cfg: object) -> VerifyParams:
-        from perception.los import CameraModel
+        from companion.config import camera_model  # built once per camera section: a simulated run builds these
 
         v = cfg.app.verify  # type: ignore[attr-defined]
-        cam = CameraModel.from_config(cfg.camera)  # type: ignore[attr-defined]
+        cam = camera_model(cfg.camera)  # type: ignore[attr-defined]
         return cls(float(cam.K[0, 0]), float(cfg.guidance.gate_radius), cam.width, cam.height,  # type: ignore
                    float(v.max_range), float(v.min_acquire_range), math.radians(float(v.max_view_angle)),
                    float(v.size_tolerance), float(v.min_similarity), acquire_cut=bool(v.acquire_cut),
