@@ -291,20 +291,24 @@ def test_sigint_while_starting_is_one_line_not_a_traceback(sim, tmp_path, when):
     """Issue #22: SIGINT in the first 0.3 s (the app's modules still loading) gave a KeyboardInterrupt traceback.
     Before the flight: one line, a defined exit code, nothing armed. (Python's own start-up, before any of the
     app's code runs, is not the app's to handle.)"""
+    t0 = time.monotonic()
     proc, logdir = _start_fly(tmp_path, sim.url_for_mavsdk)
     try:
         deadline = time.monotonic() + 30
         ready = (lambda: _loading_app_modules(proc.pid)) if when == "loading" else (
             lambda: any(logdir.glob("*/meta.json")))
-        while not ready() and time.monotonic() < deadline and proc.poll() is None:
+        while not (seen := ready()) and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.002)
+        # What the harness saw, for a failure (CI twice flew the whole flight: was the signal sent in time?)
+        sent = (f"signal sent {time.monotonic() - t0:.2f} s after the start, {when} seen {seen}, "
+                f"process {'running' if proc.poll() is None else f'already exited {proc.returncode}'}")
         proc.send_signal(signal.SIGINT)
         rc = proc.wait(timeout=30)
         err = proc.stderr.read()
     finally:
         _reap(proc)
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-2000:]
-    assert rc in (130, Reason.SIGNAL.value), (rc, err[-2000:])
+    assert rc in (130, Reason.SIGNAL.value), (rc, sent, err[-2000:])
     last = [ln for ln in err.splitlines() if ln.startswith("companion: ")][-1:]
     assert last and ("interrupted" in last[0] or "SIGINT" in last[0] or "flight log" in last[0]), err[-2000:]
     assert not sim.armed

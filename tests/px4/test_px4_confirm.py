@@ -154,7 +154,7 @@ def _confirm_then_withdraw(px4: PX4Sitl, log_dir: Path, gcs: GroundStation, conf
     # PX4's own take-off to 6 m takes ~7 s; under CI load (two PX4 and their apps on 2 cores) it once took over
     # the default 30 s. The take-off is not what this test is about: it gets 90 s.
     proc = start_app(px4, log_dir, "app.engage=confirm", "app.synthetic.motion=stationary",
-                     "app.synthetic.distance=35", "app.takeoff_altitude=6", "app.takeoff_timeout=90", *overrides)
+                     "app.synthetic.distance=35", "app.takeoff_altitude=6", "link.takeoff_timeout=90", *overrides)
     try:
         folder = flight_folder(log_dir, timeout=60)
         _event(folder, "candidate awaiting confirmation", proc, 120)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -71,7 +72,7 @@ def test_ctrl_c_of_companion_sim_stops_px4(sitl: Path, tmp_path: Path) -> None:
                              str(sitl), "--no-status", "--no-plot", "--set", f"log.directory={tmp_path / 'flights'}",
                              "--set", f"px4.work_dir={tmp_path}", "--set", f"px4.instance_min={r.start}",
                              "--set", f"px4.instance_max={r.stop - 1}"],
-                            cwd=REPO, stderr=subprocess.PIPE, text=True)
+                            cwd=REPO, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     try:
         assert proc.stderr is not None
         pid = None
@@ -83,7 +84,18 @@ def test_ctrl_c_of_companion_sim_stops_px4(sitl: Path, tmp_path: Path) -> None:
         assert pid is not None, "companion sim did not report PX4's pid"
         time.sleep(2.0)  # PX4 is starting up / waiting for its pre-flight checks
         proc.send_signal(signal.SIGINT)  # what Ctrl-C sends to the foreground process
-        proc.wait(30)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:  # CI saw this twice: say where the app was (its stack, its last words)
+            with contextlib.suppress(OSError):
+                proc.send_signal(signal.SIGABRT)  # PYTHONFAULTHANDLER: every thread's stack to stderr
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+            raise AssertionError(f"companion sim still ran 30 s after SIGINT; its stderr since PX4's pid: "
+                                 f"{proc.stderr.read()[-6000:]!r}") from None
         assert proc.returncode == 130  # companion: interrupted
         assert _wait_gone(pid, 15.0), "PX4 still runs after Ctrl-C"
         assert not (tmp_path / "flights").exists()  # interrupted before the flight: no flight log
