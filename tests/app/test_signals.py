@@ -21,6 +21,14 @@ from companion.flightlog import read_flight
 pytestmark = pytest.mark.timeout(120)
 
 
+def interactive_sigint() -> None:
+    """preexec_fn: SIGINT as a terminal's foreground process has it. A child inherits an ignored SIGINT (a CI
+    started as a background job ignores it, and so does everything below it), and then Python installs no
+    KeyboardInterrupt handler: a Ctrl-C in the app's first 0.3 s, or during `companion sim`'s PX4 start, did nothing
+    in such a run. The app honours an ignored SIGINT; what these tests check is a Ctrl-C in a terminal."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_fly(tmp_path: Path, url: str, env: dict[str, str] | None = None,
                extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, Path]:
     logdir = tmp_path / "flights"
@@ -28,7 +36,8 @@ def _start_fly(tmp_path: Path, url: str, env: dict[str, str] | None = None,
     for o in (*BASE_OVERRIDES, *extra):
         cmd += ["--set", o]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            cwd=Path(__file__).resolve().parents[2], env={**os.environ, **(env or {})})
+                            cwd=Path(__file__).resolve().parents[2], env={**os.environ, **(env or {})},
+                            preexec_fn=interactive_sigint)
     return proc, logdir
 
 

@@ -66,13 +66,19 @@ def test_px4_dies_with_a_killed_parent(sitl: Path, tmp_path: Path) -> None:
             parent.kill()
 
 
+def _interactive_sigint() -> None:
+    """preexec_fn: SIGINT as a terminal's foreground process has it (tests/app/test_signals.py says why)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_of_companion_sim_stops_px4(sitl: Path, tmp_path: Path) -> None:
     r = instance_range()
     proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "sim", "--autopilot", "px4", "--px4-dir",
                              str(sitl), "--no-status", "--no-plot", "--set", f"log.directory={tmp_path / 'flights'}",
                              "--set", f"px4.work_dir={tmp_path}", "--set", f"px4.instance_min={r.start}",
                              "--set", f"px4.instance_max={r.stop - 1}"],
-                            cwd=REPO, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+                            cwd=REPO, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONFAULTHANDLER": "1"},
+                            preexec_fn=_interactive_sigint)
     try:
         assert proc.stderr is not None
         pid = None
