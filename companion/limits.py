@@ -95,13 +95,15 @@ class CloseDetector:
         # The fit describes the window's centre; the contact time is the same instant, seen from now.
         return max(0.0, s_mean / slope - (t_last - t_mean))
 
-    def peak(self, t: float, window_s: float) -> float:
-        """The largest box of the last ``window_s`` seconds before ``t``, as a fraction of the width (0: none)."""
+    def peak(self, t: float, window_s: float, until: float | None = None) -> float:
+        """The largest box of the last ``window_s`` seconds before ``t``, as a fraction of the width (0: none);
+        ``until``: only boxes seen at or before it."""
         best = 0.0
         for ts, s in reversed(self._hist):
             if t - ts > window_s:
                 break
-            best = max(best, s)
+            if until is None or ts <= until:
+                best = max(best, s)
         return best / self.width
 
     def update(self, t: float, box: BoundingBox | None, valid: bool) -> CloseEstimate:

@@ -293,6 +293,58 @@ def test_the_tracker_is_told_to_drop_a_target_the_engagement_keeps_refusing():
     assert eng.phase is Phase.ENGAGE and eng.refused == 9
 
 
+def test_a_far_gate_lost_leaves_no_range_to_dead_reckon_when_a_box_comes_back():
+    """Real PX4 (SIH run057, 2026-12-06): the gate's box was 0.13 of the image when the detector lost it; 0.84 s later
+    a background box 0.69 of the image tall appeared, and the engagement closed on the range it had dead-reckoned
+    from the far box ("range -1.34 m"), 4 m beside the gate. Dead-reckoning is for the last metres of a ring that
+    came to fill the view: the box must have been near when the image last gave a range. Here every other condition
+    of the reckoned close holds at the background box (checked), and the engagement does not close on it."""
+    imu = np.array([0.0, 0.0, -9.80665])
+    v, t, d = 10.0, 0.0, 25.0
+    eng = Engagement.from_config(CFG, PNController.from_config(CFG))
+    p = eng.params
+    while d > 9.0:  # the gate, growing to 107 px (0.17 of the width)
+        eng.step(t, box(2.0 * F / d), LEVEL, 10.0, accel_frd=imu, t_now=t)
+        t, d = t + DT, d - v * DT
+    assert eng.phase is Phase.ENGAGE
+    for _ in range(27):  # 0.9 s without a box
+        eng.step(t, None, LEVEL, 10.0, accel_frd=imu, t_now=t)
+        t, d = t + DT, d - v * DT
+    dec = eng.step(t, box(400.0, 330.0, 250.0), LEVEL, 10.0, accel_frd=imu, t_now=t)
+    d_est, d_dot, t_range = eng.controller.closing_estimate
+    assert t_range is not None and 0.0 < t - t_range <= p.reckon_max and -p.reckon_v_max < d_dot < -0.5
+    assert d_est <= p.reckon_range, d_est  # dead-reckoned: the plane is reached
+    assert dec.control.mode == "pn"  # the lock took the box (a gap that long explains any size)...
+    assert eng.close.peak(t, p.near_window) >= p.lost_min_size  # ...and it is near now, but was not at the range
+    assert eng.close.peak(t_range, p.near_window, until=t_range) < p.lost_min_size
+    assert dec.phase is Phase.ENGAGE and "dead-reckoned" not in dec.why, dec.why
+
+
+def test_no_dead_reckoning_at_a_closing_speed_beyond_the_envelope():
+    """The filter's closing speed above ``guidance.v_rel_bar`` is none the vehicle flies (on real PX4 a filter that
+    had followed a drifting box dead-reckoned 17.4 m/s on SIH's 8 m/s quad): no reckoned close at it. The filled-ring
+    approach of the test below at 7 m/s, with the envelope's bound at 15 (closes) and at 5 m/s (does not)."""
+    imu = np.array([0.0, 0.0, -9.80665])
+
+    def closes(v_rel_bar: float) -> bool:
+        cfg = load_config([], [f"guidance.v_rel_bar={v_rel_bar}"])
+        eng = Engagement.from_config(cfg, PNController.from_config(cfg))
+        assert eng.params.reckon_v_max == v_rel_bar
+        t, d, filled = 0.0, 20.0, False
+        while t < 3.5:
+            filled = filled or 2.0 * F / d >= 0.8 * 480
+            dec = eng.step(t, box(400.0 if filled else 2.0 * F / d), LEVEL, 10.0, accel_frd=imu, t_now=t)
+            if dec.phase is Phase.PASS:
+                return "dead-reckoned" in dec.why
+            t, d = t + DT, d - 7.0 * DT
+        est = eng.controller.closing_estimate
+        assert est is not None and -est[1] > v_rel_bar, est  # the filter's speed was beyond the bound
+        return False
+
+    assert closes(15.0)
+    assert not closes(5.0)
+
+
 def test_the_gate_plane_reached_by_dead_reckoning_closes_the_engagement():
     """PX4 SIH (2026-12-06): after the ring filled the view, the detector's boxes were background of the same size
     ("2 m away", neither growing nor shrinking) and the app steered at them for up to 1.2 s after the crossing. An
