@@ -51,11 +51,6 @@ class PerceptionConfig(Section):
     )
     min_iou: Number = Field(0.05, ge=0.0, le=1.0, description="association: IoU with the prediction, or ...")
     coast_time: Seconds = Field(0.3, ge=0.0, le=10.0, description="s; Kalman prediction kept through misses")
-    coast_max_size: Number = Field(
-        0.25, gt=0.0, le=10.0,
-        description="a predicted box larger than this fraction of the image width is not output (no box): a near "
-        "ring's image moves faster than the prediction follows; the track is kept until coast_time",
-    )
     confirm_frames: int = Field(2, ge=1, le=30, description="consecutive detections that (re)acquire a target")
     acquire_confidence: Number = Field(
         0.5, ge=0.0, le=1.0,

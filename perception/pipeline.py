@@ -10,8 +10,7 @@ Policy (one state machine, both tracker kinds):
   neither overlaps the prediction nor lies within reach of it is a jump and is rejected (reach: ``max_jump_rate``
   image diagonals per second of the frame gap, at most ``max_jump``, plus half the predicted box's diagonal).
   The Kalman-filtered box (smoothing before the LOS) is the output.
-* misses: the Kalman prediction is output for up to ``coast_time`` with decaying confidence (never for a box
-  wider than ``coast_max_size`` of the image: a near ring's image outruns the prediction), then
+* misses: the Kalman prediction is output for up to ``coast_time`` with decaying confidence, then
   the target is lost and the search starts again. A prediction whose centre is too uncertain
   (``COAST_MAX_SIGMA``: a long gap between frames, an erratic track) is not output (no box), though the
   track is kept until ``coast_time``.
@@ -103,7 +102,6 @@ class PipelineStats:
     boxes: int = 0  # frames with an output box
     measured: int = 0  # frames whose box was corrected by a measurement
     coasted: int = 0  # frames whose box is a prediction
-    near_uncoasted: int = 0  # missed frames of a box too large to coast (coast_max_size): no box
     rejected_jumps: int = 0
     acquisitions: int = 0
     losses: int = 0
@@ -122,7 +120,6 @@ class PipelineStats:
         return {
             "frames": self.frames, "detector_runs": self.detector_runs, "tracker_runs": self.tracker_runs,
             "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted,
-            "near_uncoasted": self.near_uncoasted,
             "rejected_jumps": self.rejected_jumps, "acquisitions": self.acquisitions, "losses": self.losses,
             "rejected_inconsistent": self.rejected_inconsistent, "switches": self.switches,
             "unconfident": self.unconfident, "held_back": self.held_back,
@@ -331,12 +328,6 @@ class Pipeline:
             if ch is not None and ch.score.streak >= 1:
                 self.candidate, self.candidate_count = ch.box, min(ch.score.streak, self.pc.confirm_frames - 1)
             self.challenger = None
-            return None
-        if max(pred.w, pred.h) > self.pc.coast_max_size * self.width:
-            # A near ring's image moves and grows faster than a constant-velocity prediction follows (its image
-            # rate grows as 1 / range): no box, keep the track. On real PX4 (SIH and x500, 2026-12-06) every pass
-            # claimed on a box off the gate had coasted 4-6 frames of a ring already sliding out of view.
-            self.stats.near_uncoasted += 1
             return None
         if self.kf.centre_sigma > COAST_MAX_SIGMA * min(pred.w, pred.h):
             # the prediction may have left the gate (a long frame gap, an erratic track): no box, keep the track
