@@ -148,10 +148,6 @@ class EngagementParams:
     # centre crosses the plane at a range of its offset, never 0: on the in-process SIH the closes that still came
     # more than 0.2 s after the crossing were such passes (5 of 88 at 0 m, 2 at half the radius).
     reckon_range: float = 0.0
-    # ...and only while the filter's closing speed is one the envelope allows (guidance.v_rel_bar; 0: no bound). On
-    # real PX4 (SIH, 2026-12-06) a filter that had followed a drifting box dead-reckoned 17.4 m/s, twice the
-    # vehicle's speed, and closed on a range it had run through.
-    reckon_v_max: float = 0.0
 
     @classmethod
     def from_config(cls, cfg: Config, hover_thrust: float | None = None, f_min: float | None = None,
@@ -167,7 +163,7 @@ class EngagementParams:
                    cfg.airframe.f_min if f_min is None else f_min, cfg.airframe.f_max if f_max is None else f_max,
                    cfg.camera.width, cfg.camera.height, math.radians(cfg.airframe.max_tilt),
                    frame_rate=cfg.camera.rate, reckon_close=a.close_reckoning,
-                   reckon_range=0.5 * cfg.guidance.gate_radius, reckon_v_max=cfg.guidance.v_rel_bar)
+                   reckon_range=0.5 * cfg.guidance.gate_radius)
 
 
 @dataclass
@@ -518,9 +514,8 @@ class Engagement:
     def _reckoned(self, t: float) -> str:
         """The time-to-contact the closing-speed filter dead-reckons with the IMU to ``reckon_range`` of the gate's
         centre, when it is at most ``reckon_ttc`` (0: that range reached) while the image gives no range (the ring
-        filled the view, or no box), the gate's box was near when the image last gave a range (at least
-        ``lost_min_size`` of the width in the ``near_window`` before it) and the filter's closing speed is at most
-        ``reckon_v_max``: why, or ""."""
+        filled the view, or no box) and the gate's box was near when the image last gave a range (at least
+        ``lost_min_size`` of the width in the ``near_window`` before it): why, or ""."""
         p, c = self.params, self.close
         if not p.reckon_close or p.on_close != "fly_through" or c.trigger not in ("ttc", "either"):
             return ""
@@ -529,8 +524,6 @@ class Engagement:
             return ""
         d, d_dot, t_range = est
         if t_range is None or not (0.0 < t - t_range <= p.reckon_max) or d_dot > -0.5:
-            return ""
-        if p.reckon_v_max > 0.0 and -d_dot > p.reckon_v_max:
             return ""
         # Near when the image last gave a range (the ring came to fill the view): a box seen since then does not
         # make an old range from a small box one to dead-reckon (on real PX4 a far gate lost 0.84 s earlier and a

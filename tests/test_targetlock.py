@@ -312,37 +312,12 @@ def test_a_far_gate_lost_leaves_no_range_to_dead_reckon_when_a_box_comes_back():
         t, d = t + DT, d - v * DT
     dec = eng.step(t, box(400.0, 330.0, 250.0), LEVEL, 10.0, accel_frd=imu, t_now=t)
     d_est, d_dot, t_range = eng.controller.closing_estimate
-    assert t_range is not None and 0.0 < t - t_range <= p.reckon_max and -p.reckon_v_max < d_dot < -0.5
+    assert t_range is not None and 0.0 < t - t_range <= p.reckon_max and d_dot < -0.5
     assert d_est <= p.reckon_range, d_est  # dead-reckoned: the plane is reached
     assert dec.control.mode == "pn"  # the lock took the box (a gap that long explains any size)...
     assert eng.close.peak(t, p.near_window) >= p.lost_min_size  # ...and it is near now, but was not at the range
     assert eng.close.peak(t_range, p.near_window, until=t_range) < p.lost_min_size
     assert dec.phase is Phase.ENGAGE and "dead-reckoned" not in dec.why, dec.why
-
-
-def test_no_dead_reckoning_at_a_closing_speed_beyond_the_envelope():
-    """The filter's closing speed above ``guidance.v_rel_bar`` is none the vehicle flies (on real PX4 a filter that
-    had followed a drifting box dead-reckoned 17.4 m/s on SIH's 8 m/s quad): no reckoned close at it. The filled-ring
-    approach of the test below at 7 m/s, with the envelope's bound at 15 (closes) and at 5 m/s (does not)."""
-    imu = np.array([0.0, 0.0, -9.80665])
-
-    def closes(v_rel_bar: float) -> bool:
-        cfg = load_config([], [f"guidance.v_rel_bar={v_rel_bar}"])
-        eng = Engagement.from_config(cfg, PNController.from_config(cfg))
-        assert eng.params.reckon_v_max == v_rel_bar
-        t, d, filled = 0.0, 20.0, False
-        while t < 3.5:
-            filled = filled or 2.0 * F / d >= 0.8 * 480
-            dec = eng.step(t, box(400.0 if filled else 2.0 * F / d), LEVEL, 10.0, accel_frd=imu, t_now=t)
-            if dec.phase is Phase.PASS:
-                return "dead-reckoned" in dec.why
-            t, d = t + DT, d - 7.0 * DT
-        est = eng.controller.closing_estimate
-        assert est is not None and -est[1] > v_rel_bar, est  # the filter's speed was beyond the bound
-        return False
-
-    assert closes(15.0)
-    assert not closes(5.0)
 
 
 def test_the_gate_plane_reached_by_dead_reckoning_closes_the_engagement():
