@@ -81,11 +81,15 @@ def test_sigint_during_takeoff_commands_a_confirmed_hold(px4: PX4Sitl, log_dir: 
     # machine: the vehicle still on the ground) PX4 may finish leaving the ground and then stop: CI 2026-12-02 saw
     # 0.0 -> 1.04 m in 3 s once, and 0.0 m for 4.5 s then +0.4 m another time. So the check waits for the height
     # to settle (as PX4 decides when, not on a timer) and bounds where it settles, far below the 12 m take-off.
+    # PX4 holds its *estimated* height, and SIH's EKF height is off from the truth by 1-3 m after a few flights on
+    # one instance (see _take_off_by_px4): CI 2026-12-06 saw PX4 report IN_AIR and confirm Hold with the truth still
+    # on the ground (0.001 m), then a slow rise to settle 2.6 m up over 18 s. The bound is that error plus 1 m of
+    # lift-off; a take-off that went on (MPC_TKO_SPEED 1.5 m/s to 12 m) would be far past it and never settle.
     heights, settled = _settled_heights(px4, settle_s=3.0, at_least_s=10.0, timeout_s=30.0)
     h0, h_end = heights[0], heights[-1]
     trace = " -> ".join(f"{h:.1f}" for h in heights[::4])
     assert settled, f"still climbing 30 s after the app said Hold: {trace} m"
-    assert h_end - h0 < 2.5 and max(heights) < 10.0, f"climbed on after the app said Hold: {trace} m"
+    assert h_end - h0 < 4.0 and max(heights) < 6.0, f"climbed on after the app said Hold: {trace} m"
 
 
 def _settled_heights(px4: PX4Sitl, settle_s: float, at_least_s: float, timeout_s: float,
