@@ -122,7 +122,7 @@ class ClosingSpeedEstimator:
         Each image axis whose box edges are both inside the image gives the angle the ring subtends along it;
         the larger one is the ring's diameter (a tilted ring is foreshortened along the other axis only, which
         makes the range too long and the closing speed too high: the safe side for PN)."""
-        if self.filled or self._fills(box):
+        if self.filled or self.fills(box):
             return None
         return self._range_of(box)
 
@@ -140,7 +140,7 @@ class ClosingSpeedEstimator:
             return None
         return self.p.gate_radius / math.tan(0.5 * alpha)
 
-    def _fills(self, box: BoundingBox) -> bool:
+    def fills(self, box: BoundingBox) -> bool:
         """The box reaches ``max_box`` of the image's smaller side: the ring fills the view."""
         cam = self.camera
         return self.p.max_box > 0.0 and max(box.w, box.h) >= self.p.max_box * min(cam.width, cam.height)
@@ -165,7 +165,7 @@ class ClosingSpeedEstimator:
             predicted = True
         if self.t is None or t > self.t:
             self.t = t
-        if box is not None and not self.filled and self._fills(box):
+        if box is not None and not self.filled and self.fills(box):
             self.filled = True  # no range from any box until reset
         # range_from_box(box), its fill test just made above (filled now says it)
         d = self._range_of(box) if box is not None and not self.filled else None

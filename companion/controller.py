@@ -251,7 +251,7 @@ class PNController:
             assert box is not None
             l_ned = R_ned_frd.dot(self.camera.ray_body(box.cx, box.cy))
             l_enu = swap_ned_enu_xyz(*l_ned.tolist())  # floats: the LOS checks and filter run on floats
-            rejected = self._jump(t, l_enu)
+            rejected = self._jump(t, l_enu, box)
             if rejected is None:
                 self._closing_speed(t, box, R_ned_frd, accel_frd)
                 self._update_drag(t, R_ned_frd, accel_frd)
@@ -308,7 +308,7 @@ class PNController:
             return f"invalid box ({box.cx}, {box.cy}, {box.w}, {box.h})"
         return None
 
-    def _jump(self, t: float, l_enu: tuple[float, float, float]) -> str | None:
+    def _jump(self, t: float, l_enu: tuple[float, float, float], box: BoundingBox) -> str | None:
         """A LOS that moved faster than max_los_rate since the last used frame is a jump, unless it persists."""
         if self._l_prev_xyz is None or self._t_prev is None:
             return None
@@ -328,10 +328,17 @@ class PNController:
                 self._kf.reset()
             self._l_prev_xyz = None
             self._w = None
-            if self._closing is not None and not self._closing.filled:
+            est = self._closing
+            if est is not None and not est.filled:
                 # (Once the ring filled the view a LOS jump is the ring leaving it, not a new target: the range
-                # stays dead-reckoned.)
-                self._closing.reset()
+                # stays dead-reckoned.) A jump *to* a box that fills the view is the ring filling it: the LOS of
+                # a ring at arm's length jumps as its box saturates, and the jump's frames were rejected before
+                # the filter saw their size. Forgetting the range there left nothing to dead-reckon (real PX4,
+                # x500: steered at background boxes for 1.4 s after flying through).
+                if est.fills(box):
+                    est.filled = True
+                else:
+                    est.reset()
             return None
         return f"LOS jump ({math.degrees(angle):.1f} deg in {dt * 1e3:.0f} ms)"
 

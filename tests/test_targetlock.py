@@ -355,3 +355,35 @@ def test_the_gate_plane_reached_by_dead_reckoning_closes_the_engagement():
     decs, _ = run("app.close_reckoning=false")
     assert not any(x.phase is Phase.PASS for x in decs)  # without it: still steering at the background box
     assert decs[-1].phase is Phase.ENGAGE
+
+
+def test_a_los_jump_onto_a_ring_filling_the_view_keeps_the_range_to_dead_reckon():
+    """PX4 x500 (2026-12-06, run014): as the ring came to fill the view its box jumped sideways (its LOS moved
+    faster than ``los_filter.max_rate``); the jump's frames were rejected, so the closing-speed filter never saw
+    their size, and when the jump persisted the controller took it for a new target and forgot the range. With
+    nothing to dead-reckon, the app steered at background boxes for 1.4 s after flying through the gate. Here: an
+    approach at 10 m/s until the box is 0.75 of the image height, then the filling box 150 px to the side. The
+    range survives the re-acquisition and the engagement closes where the truth is half the ring's radius out."""
+    imu = np.array([0.0, 0.0, -9.80665])
+    v, t, d = 10.0, 0.0, 20.0
+    eng = Engagement.from_config(CFG, PNController.from_config(CFG))
+    p, jumped, decs = eng.params, math.nan, []
+    while t < 2.6:
+        s = 2.0 * F / d
+        if math.isnan(jumped) and s < 0.75 * 480:
+            b = box(s)
+        else:
+            jumped = t if math.isnan(jumped) else jumped
+            # >= closing_max_box (0.8) of the height: the ring fills the view; then it shrinks a little, as the
+            # ring's and background's boxes did (no time-to-contact from the image)
+            b = box(430.0 - 100.0 * (t - jumped), cx=470.0)
+        decs.append(eng.step(t, b, LEVEL, 10.0, accel_frd=imu, t_now=t))
+        if not math.isnan(jumped) and t - jumped < 1.5 * DT:  # the jump's first frames are rejected...
+            assert decs[-1].control is not None and decs[-1].control.rejected.startswith("LOS jump")
+        elif not math.isnan(jumped) and t - jumped < 2.5 * DT:  # ...until it persists: a new target
+            assert decs[-1].control is not None and decs[-1].control.rejected is None
+        t, d = t + DT, d - v * DT
+    assert eng.controller.closing_estimate is not None  # the range is kept (and dead-reckoned)
+    close = next(x for x in decs if x.phase is Phase.PASS and x.changed)
+    assert "dead-reckoned" in close.why, close.why
+    assert abs(close.t - (20.0 - p.reckon_range) / v) <= 2 * DT, (close.t, (20.0 - p.reckon_range) / v)
