@@ -72,6 +72,12 @@ TOPICS: dict[str, tuple[str, ...]] = {
     "gate": ("t", "k", "gate_n", "gate_e", "gate_d", "normal_n", "normal_e", "normal_d", "radius", "visible"),
     # hover.estimate: the hover-thrust estimate (companion/hover.py) and the sample that updated it.
     "hover": ("t", "u_cmd", "a_up", "hover_thrust", "std", "samples"),
+    # What the loop gave FlightCore.step for each frame besides its box (detections, same t_frame): the attitude
+    # at capture, baro above the reference, the accelerometer sample and its time, the time processed, the
+    # operator's confirmation (1/0, empty: auto) and the hover thrust the core held before the step.
+    # ``companion log rerun`` (companion/logrerun.py) steps a core with these again.
+    "inputs": ("t", "t_frame", "qw", "qx", "qy", "qz", "baro_rel_m", "acc_f", "acc_r", "acc_d", "t_imu", "t_now",
+               "confirm", "hover_thrust"),
 }
 IMMEDIATE = frozenset({"states", "events"})  # rare and precious: straight to the OS
 RESERVE_BYTES = 256 * 1024  # > the topics' write buffers (8 KB each) + summary.json

@@ -282,6 +282,9 @@ def register_log_actions(lsub: Any) -> None:
     from companion.logclutter import register as register_clutter
 
     register_clutter(lsub)  # log clutter: gate or clutter, per engaged frame, from a synthetic-camera log's truth
+    from companion.logrerun import register as register_rerun
+
+    register_rerun(lsub)  # log rerun: the flight core again on a log's frames, as flown or with another config
 
 
 def _cmd_summary(args: argparse.Namespace) -> int:

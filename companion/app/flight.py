@@ -34,7 +34,7 @@ from companion.app.logrows import log_detection, log_telemetry
 from companion.app.monitors import Monitors
 from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
-from companion.app.perframe import frame_input, log_step
+from companion.app.perframe import frame_input, log_inputs, log_step
 from companion.app.safeend import SafeEnds
 from companion.app.states import Reason, State, StateMachine, Transition, VehicleView
 from companion.confirm import ConfirmParams, OperatorConfirm, engage_mode
@@ -372,6 +372,7 @@ class FlightApp(Monitors, SafeEnds):
                     self._confirm.withdrawn = None
             if self._hover_check is not None and not self._hover_check.done:  # before the first setpoint
                 self._hover_check.frame(core, self.sm.state is State.ACQUIRE, t_avail)
+            log_inputs(self.log, inp, core.hover_thrust)
             step = core.step(inp)
             d = step.decision
             if d.control is not None:

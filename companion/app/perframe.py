@@ -41,6 +41,17 @@ def frame_input(t: float, box: Any, vehicle: VehicleTelemetry, baro_rel_alt: flo
                       imu=ImuReading(imu.t_rx, imu.accel_frd) if imu is not None else None)
 
 
+def log_inputs(log: FlightLog, inp: FrameInput, hover_thrust: float) -> None:
+    """The core's input of one frame, as given to ``FlightCore.step`` (its box is the frame's detections row),
+    and the hover thrust the core holds before the step: ``companion log rerun`` steps a core with them again."""
+    t0, q, a, imu = log.t0, inp.q_wxyz_ned_frd, inp.accel_frd, inp.imu
+    acc = (None, None, None) if a is None else (a[0], a[1], a[2])
+    log.write("inputs", t_frame=inp.t - t0, qw=q[0], qx=q[1], qy=q[2], qz=q[3], baro_rel_m=inp.baro_rel_alt,
+              acc_f=acc[0], acc_r=acc[1], acc_d=acc[2], t_imu=None if imu is None else imu.t - t0,
+              t_now=None if inp.t_now is None else inp.t_now - t0,
+              confirm=None if inp.confirm is None else int(inp.confirm), hover_thrust=hover_thrust)
+
+
 def log_step(log: FlightLog, t_frame: float, step: CoreStep, state: str, ctrl_mode: str,
              latency_ms: float) -> None:
     """The rows of one core step: the controller's LOS and demand when it ran, the setpoint when there is

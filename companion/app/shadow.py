@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 from companion.app.logrows import log_detection, log_telemetry
-from companion.app.perframe import frame_input, log_step
+from companion.app.perframe import frame_input, log_inputs, log_step
 from companion.confirm import engage_mode
 from companion.core import FlightCore
 
@@ -225,6 +225,7 @@ class _Session:
         inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
         if inp is None:
             return  # no attitude yet: nothing to compute from
+        log_inputs(self.log, inp, core.hover_thrust)
         step = core.step(inp)  # the accelerometer, the time now, the hover estimate: as in a flight
         d = step.decision
         if step.reset_tracker:
