@@ -295,6 +295,9 @@ class Px4Flyer:
         self.px4 = self.veh = None
 
 
+QUEUE_WAIT_S = 2.0  # s a worker waits for a run before it concludes none is left
+
+
 def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out_dir: str, radii: list[float],
             jobs: Any, results: Any, candidates: list[int], parent_pid: int) -> None:
     """One PX4 instance; runs jobs from the queue until it is empty.
@@ -321,7 +324,10 @@ def _worker(wid: int, sitl_dir: str, files: list[str], overrides: list[str], out
     try:
         while True:
             try:
-                job: Px4Job = jobs.get_nowait()
+                # Not get_nowait(): a multiprocessing queue can look empty for a moment after the parent's puts
+                # (its feeder thread has not flushed them yet), and a worker that took that for "no more runs" quit
+                # before its first: a 100-run table flew on one PX4 instead of two, at half the speed, unsaid.
+                job: Px4Job = jobs.get(timeout=QUEUE_WAIT_S)
             except queue.Empty:
                 return
             res = flyer.fly(job)
