@@ -10,8 +10,8 @@ log's; there the core starts a new engagement after each end, as shadow mode doe
 
 Inputs per frame: ``inputs.csv`` (what the loop gave ``FlightCore.step``, companion/app/perframe.py) and the
 frame's box from ``detections.csv``. A log written before inputs.csv existed is rerun from ``telemetry.csv``
-(attitude slerped from its 20 Hz samples, the newest accelerometer row, no baro floor, the hover thrust of
-summary.json): approximate. On the 200 real-PX4 flights of docs/results/px4_*_100_20261206e, 194 reproduce their
+(attitude slerped from its 20 Hz samples, the newest accelerometer row, no baro floor, no operator confirmation,
+the hover thrust of summary.json): approximate. On the 200 real-PX4 flights of docs/results/px4_*_100_20261206e, 194 reproduce their
 phase changes to the millisecond that way and 6 are one frame off.
 
 The box's appearance (target verification's appearance rule) is not in the log: a rerun judges boxes without it.
