@@ -11,8 +11,9 @@ log's; there the core starts a new engagement after each end, as shadow mode doe
 Inputs per frame: ``inputs.csv`` (what the loop gave ``FlightCore.step``, companion/app/perframe.py) and the
 frame's box from ``detections.csv``. A log written before inputs.csv existed is rerun from ``telemetry.csv``
 (attitude slerped from its 20 Hz samples, the newest accelerometer row, no baro floor, no operator confirmation,
-the hover thrust of summary.json): approximate. On the 200 real-PX4 flights of docs/results/px4_*_100_20261206e, 194 reproduce their
-phase changes to the millisecond that way and 6 are one frame off.
+the hover thrust of summary.json): approximate. On the 200 real-PX4 flights of
+docs/results/px4_*_100_20261206e, 194 reproduce their phase changes to the millisecond that way and 6 are one
+frame off.
 
 The box's appearance (target verification's appearance rule) is not in the log: a rerun judges boxes without it.
 """
@@ -39,8 +40,7 @@ SETPOINT_TOL = 1e-4  # deg / thrust fraction: the log's 9 significant digits, ca
 
 @dataclass
 class Step:
-    t_frame: float  # flight-log clock
-    t_now: float  # when the frame was processed (flight-log clock): the log's state rows are written then
+    t_frame: float  # capture time, flight-log clock
     phase: str
     why: str
     setpoint: tuple[float, float, float, float] | None  # roll, pitch, yaw deg, thrust
@@ -51,7 +51,8 @@ class Rerun:
     folder: Path
     exact: bool  # from inputs.csv (False: reconstructed from telemetry.csv)
     steps: list[Step] = field(default_factory=list)
-    changes: list[tuple[float, str, str]] = field(default_factory=list)  # (t_now, phase, why) of each change
+    # (t_frame, phase, why) of each change: the capture time of the frame that made it; the log's the same way
+    changes: list[tuple[float, str, str]] = field(default_factory=list)
     logged_changes: list[tuple[float, str]] = field(default_factory=list)
     setpoint_diff: float = 0.0  # largest difference to a logged setpoint on the same frame
     first_diff: float | None = None  # t_frame of the first logged setpoint the rerun does not reproduce
@@ -139,17 +140,26 @@ def _hover0(flight: Flight) -> float | None:
 
 
 def _logged_changes(flight: Flight, shadow: bool) -> list[tuple[float, str]]:
-    """The engagement's phase changes the log recorded (flight-log clock of the write)."""
+    """The engagement's phase changes the log recorded, each at the capture time of the frame that made it: the
+    frame whose detection row is the last written before the change (a loop logs the detection, steps the core,
+    then writes the change, before it reads the next frame)."""
     core_phases = {"ENGAGE", "PASS", "RECOVER", "HANDBACK", "ABORT", "LAND"}
     if shadow:
-        out = []
+        raw = []
         for r in flight["events"].rows():
             text = str(r["text"])
             if text.startswith("shadow: ") and " -> " in text.split(":")[1]:
-                out.append((float(r["t"]), text.split(" -> ")[1].split(":")[0]))
-        return out
-    # An ABORT of the core is named by the app's safe end (HANDBACK, SAFE_HOLD, ...): compare what both name.
-    return [(float(r["t"]), r["to_state"]) for r in flight.states if r["to_state"] in core_phases]
+                raw.append((float(r["t"]), text.split(" -> ")[1].split(":")[0]))
+    else:
+        # An ABORT of the core is named by the app's safe end (HANDBACK, SAFE_HOLD, ...): compare what both name.
+        raw = [(float(r["t"]), r["to_state"]) for r in flight.states if r["to_state"] in core_phases]
+    det = flight["detections"]
+    t_w, t_f = np.asarray(det["t"], float), np.asarray(det["t_frame"], float)
+    out = []
+    for t, phase in raw:
+        k = int(np.searchsorted(t_w, t, side="right")) - 1
+        out.append((float(t_f[k]) if k >= 0 else t, phase))
+    return out
 
 
 def rerun(folder: str | Path, cfg: Any | None = None) -> Rerun:
@@ -183,11 +193,10 @@ def rerun(folder: str | Path, cfg: Any | None = None) -> Rerun:
         d = core.step(inp).decision
         sp = d.setpoint
         tf = inp.t - t0
-        tn = tf if inp.t_now is None else inp.t_now - t0
-        res.steps.append(Step(tf, tn, d.phase.value, d.why, None if sp is None else
+        res.steps.append(Step(tf, d.phase.value, d.why, None if sp is None else
                               (sp.roll_deg, sp.pitch_deg, sp.yaw_deg, sp.thrust)))
         if d.phase is not prev:
-            res.changes.append((tn, d.phase.value, d.why))
+            res.changes.append((tf, d.phase.value, d.why))
             prev = d.phase
         if d.phase.done:
             if not shadow:
@@ -221,7 +230,8 @@ def _compare(flight: Flight, res: Rerun) -> None:
 
 
 def report(res: Rerun) -> str:
-    """A few lines: how the rerun was made, whether it reproduces the log, its phase changes beside the log's."""
+    """A few lines: how the rerun was made, whether it reproduces the log, its phase changes beside the log's (each
+    at the capture time of the frame that made it)."""
     src = "inputs.csv" if res.exact else "telemetry.csv (approximate: the log predates inputs.csv)"
     lines = [f"{res.folder}: rerun from {src}"]
     if res.compared:
@@ -231,6 +241,7 @@ def report(res: Rerun) -> str:
         lines.append(f"  setpoints: {res.compared} logged, " + (
             f"all reproduced (largest difference {res.setpoint_diff:.2g})" if same else
             f"the rerun's first differs at t_frame {res.first_diff:.3f} s ({big})"))
+    # times: the capture time of the frame that made each change (flight-log clock)
     lines.append("  rerun:  " + "; ".join(f"{t:.3f} {p}" + (f" ({w[:70]})" if w else "") for t, p, w in res.changes))
     lines.append("  logged: " + "; ".join(f"{t:.3f} {p}" for t, p in res.logged_changes))
     return "\n".join(lines)
@@ -262,7 +273,7 @@ def _cmd(args: argparse.Namespace) -> int:
     from companion.config import Config
     from companion.configbase import ConfigError, deep_merge, parse_override
 
-    rc = 0
+    rc, n, same_sp, same_phases = 0, 0, 0, 0
     for folder in flight_folders(args.folders):
         try:
             flight = read_flight(folder)
@@ -280,4 +291,19 @@ def _cmd(args: argparse.Namespace) -> int:
             rc = 2
             continue
         print(report(res))
+        n += 1
+        same_sp += res.compared > 0 and res.first_diff is None
+        same_phases += same_path(res)
+    if n > 1:
+        print(f"{n} flights: {same_phases} with the logged phase changes, {same_sp} with every logged setpoint")
     return rc
+
+
+def same_path(res: Rerun, tol_s: float = 1e-4) -> bool:
+    """The rerun made the log's phase changes, in order, each on the same frame (capture times within ``tol_s``;
+    an ABORT of the core is named otherwise by the app)."""
+    core = {"ENGAGE", "PASS", "RECOVER", "HANDBACK"}
+    mine = [(t, p) for t, p, _ in res.changes if p in core]
+    logged = [(t, p) for t, p in res.logged_changes if p in core]
+    return len(mine) == len(logged) and all(
+        p == q and abs(t - u) <= tol_s for (t, p), (u, q) in zip(mine, logged, strict=True))

@@ -23,7 +23,7 @@ from test_shadow_equals_flight import RecordedCamera, RecordedPerception, Record
 
 from companion.config import load_config
 from companion.flightlog import FlightLog, read_flight
-from companion.logrerun import SETPOINT_TOL, flight_folders, report, rerun
+from companion.logrerun import SETPOINT_TOL, flight_folders, report, rerun, same_path
 from companion.sim.px4 import SimPX4
 
 pytestmark = pytest.mark.timeout(240)
@@ -58,13 +58,19 @@ def test_a_flight_is_reproduced_from_its_log(flight: Path) -> None:
     assert res.exact
     assert res.compared == len(f["setpoints"]) > 30
     assert res.first_diff is None and res.setpoint_diff <= SETPOINT_TOL, res.setpoint_diff
-    # The same phase changes as the log's state rows, each on the frame the flight made it on (the log writes
-    # the state when the frame is processed: within a millisecond of the rerun's processing time).
+    # The same phase changes as the log's state rows, each on the frame the flight made it on (the frame whose
+    # detection row was the last written before the state row). Independently of the rerun's own reading of the
+    # log: the first logged setpoint in ENGAGE, PASS and RECOVER is on the frame the rerun changed phase on.
     core = {"ENGAGE", "PASS", "RECOVER", "HANDBACK"}
     logged = [(t, p) for t, p in res.logged_changes if p in core]
     mine = [(t, p) for t, p, _ in res.changes if p in core]
     assert [p for _, p in mine] == [p for _, p in logged] == ["ENGAGE", "PASS", "RECOVER", "HANDBACK"]
-    assert all(abs(a - b) < 0.002 for (a, _), (b, _) in zip(mine, logged, strict=True)), (mine, logged)
+    assert all(abs(a - b) < 1e-5 for (a, _), (b, _) in zip(mine, logged, strict=True)), (mine, logged)
+    assert same_path(res)
+    sp = f["setpoints"]
+    for phase in ("ENGAGE", "PASS", "RECOVER"):
+        first = float(np.asarray(sp["t_frame"], float)[np.asarray(sp["state"]) == phase][0])
+        assert abs(first - next(t for t, p in mine if p == phase)) < 1e-5, phase
 
 
 def test_another_config_is_rerun_on_the_same_frames(flight: Path, capsys: pytest.CaptureFixture) -> None:
@@ -77,6 +83,7 @@ def test_another_config_is_rerun_on_the_same_frames(flight: Path, capsys: pytest
     cfg = load_config([], [])  # the config as flown, with the threshold raised
     cfg = type(cfg).model_validate({**f.config, "app": {**f.config["app"], "ttc_threshold": 0.6}})
     res = rerun(flight, cfg)
+    assert not same_path(res)
     t_new = next(t for t, p, _ in res.changes if p == "PASS")
     assert t_new < t_pass - 0.1, (t_new, t_pass)
     # Independently: a ring closing at a steady speed has a size ~ 1 / range, so 1 / size falls linearly to 0 at
@@ -107,12 +114,16 @@ def test_an_older_log_is_rerun_from_telemetry_and_says_so(flight: Path, tmp_path
     (old / "inputs.csv").unlink()
     res = rerun(old)
     assert not res.exact and "approximate" in report(res)
-    logged = [p for _, p in res.logged_changes if p in {"ENGAGE", "PASS", "RECOVER", "HANDBACK"}]
-    mine = [(t, p) for t, p, _ in res.changes if p in {"ENGAGE", "PASS", "RECOVER", "HANDBACK"}]
-    assert [p for _, p in mine] == logged
+    # Approximate: each change within a frame of the logged one. A change a frame late may fall after the log's
+    # last frame (the hand-back, 1 s after RECOVER): then the rerun has no frame to make it on.
+    core = {"ENGAGE", "PASS", "RECOVER", "HANDBACK"}
+    logged = [(t, p) for t, p in res.logged_changes if p in core]
+    mine = [(t, p) for t, p, _ in res.changes if p in core]
+    assert [p for _, p in mine][:3] == [p for _, p in logged][:3] == ["ENGAGE", "PASS", "RECOVER"], (mine, logged)
+    assert len(mine) == len(logged) or (len(mine) == len(logged) - 1 and logged[-1][1] == "HANDBACK")
     frame = 1.0 / 30.0
-    for (t, _), (tl, _) in zip(mine, [c for c in res.logged_changes if c[1] in logged], strict=True):
-        assert abs(t - tl) <= frame + 0.01, (mine, res.logged_changes)
+    for (t, _), (tl, _) in zip(mine, logged, strict=False):
+        assert abs(t - tl) <= 1.5 * frame, (mine, logged)
 
 
 def test_a_shadow_log_is_reproduced_engagement_after_engagement(tmp_path: Path) -> None:
