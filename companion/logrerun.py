@@ -32,7 +32,7 @@ import numpy as np
 from companion.attitude import AttitudeTrack
 from companion.core import FlightCore, FrameInput, ImuReading
 from companion.flightlog import Flight, Table, read_flight
-from companion.hover import use_hover_thrust
+from companion.hover import HoverThrustEstimator, use_hover_thrust
 from perception.types import BoundingBox
 
 SETPOINT_TOL = 1e-4  # deg / thrust fraction: the log's 9 significant digits, carried through one step
@@ -190,6 +190,8 @@ def rerun(folder: str | Path, cfg: Any | None = None) -> Rerun:
             # Set by the app before its first setpoint (PX4's hover measured after take-off, app/hovercheck.py);
             # once the core commands, its own estimate rules, also under another config.
             use_hover_thrust(core.controller, hover, cfg.airframe.thrust_to_weight, core.engagement)
+            if core.hover_estimator is not None:  # as the app does there: the estimate starts from it
+                core.hover_estimator = HoverThrustEstimator(hover, cfg.hover)
         d = core.step(inp).decision
         sp = d.setpoint
         tf = inp.t - t0
