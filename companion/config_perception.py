@@ -30,6 +30,17 @@ class PerceptionConfig(Section):
         "auto", description="auto = onnxruntime when installed (about 2x faster here), else cv2.dnn"
     )
     threads: int = Field(1, ge=0, le=64, description="inference threads; 0 = library default")
+    zoom_below: Number = Field(
+        80.0, ge=0.0, le=4096.0,
+        description="px; a tracked, candidate or just-lost target smaller than this (larger side) is also looked "
+        "for in a crop of the model's input size at full resolution (perception/zoom.py; only when the frame is "
+        "larger than the model's input); 0 = off",
+    )
+    zoom_scan: bool | Literal["auto"] = Field(
+        "auto", description="while searching with nothing to confirm, also run the detector on one full-resolution "
+        "tile of the frame a frame, in turn (a gate too small for the whole frame is found there; zoom_below > 0); "
+        "auto = on for rendered frames, off for a real camera (its false boxes at full resolution are not measured)",
+    )
 
     # Tracker and policy (perception/tracker.py, perception/pipeline.py)
     tracker: Literal["detect", "nanotrack"] = Field(

@@ -67,6 +67,7 @@ from perception.tracker import (
     touches_border,
 )
 from perception.types import BoundingBox
+from perception.zoom import Crop, merge, scan_crop, zoom_crop
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -98,6 +99,7 @@ class _Memory:
 class PipelineStats:
     frames: int = 0
     detector_runs: int = 0
+    zoom_runs: int = 0  # detector runs on a full-resolution crop around a small target (perception/zoom.py)
     tracker_runs: int = 0
     boxes: int = 0  # frames with an output box
     measured: int = 0  # frames whose box was corrected by a measurement
@@ -118,7 +120,8 @@ class PipelineStats:
             return round(float(np.median(x)), 3) if x else 0.0
 
         return {
-            "frames": self.frames, "detector_runs": self.detector_runs, "tracker_runs": self.tracker_runs,
+            "frames": self.frames, "detector_runs": self.detector_runs, "zoom_runs": self.zoom_runs,
+            "tracker_runs": self.tracker_runs,
             "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted,
             "rejected_jumps": self.rejected_jumps, "acquisitions": self.acquisitions, "losses": self.losses,
             "rejected_inconsistent": self.rejected_inconsistent, "switches": self.switches,
@@ -132,8 +135,10 @@ class Pipeline:
     """``process(frame, t) -> BoundingBox | None`` for one target; ``stats`` counts what happened."""
 
     def __init__(self, detector: Detector, pc: PerceptionConfig, width: int, height: int,
-                 tracker: NanoTracker | None = None, appearance: bool = False) -> None:
+                 tracker: NanoTracker | None = None, appearance: bool = False, real_frames: bool = False) -> None:
         self.det = detector
+        # The search's tile scan (perception/zoom.py): zoom_scan auto = rendered frames only.
+        self.scan = pc.zoom_scan is True or (pc.zoom_scan == "auto" and not real_frames)
         self.appearance = appearance  # attach the box's appearance descriptor (only the appearance rule reads it)
         self.pc = pc
         self.width, self.height = int(width), int(height)
@@ -150,7 +155,8 @@ class Pipeline:
         det = detector if detector is not None else Detector.from_config(pc, real_frames)
         trk = NanoTracker(pc.nanotrack_backbone, pc.nanotrack_neckhead) if pc.tracker == "nanotrack" else None
         v = cfg.app.verify
-        return cls(det, pc, cfg.camera.width, cfg.camera.height, trk, appearance=v.enabled and v.min_similarity > 0)
+        return cls(det, pc, cfg.camera.width, cfg.camera.height, trk, appearance=v.enabled and v.min_similarity > 0,
+                   real_frames=real_frames)
 
     def reset(self) -> None:
         self.kf: BoxKalman | None = None
@@ -192,10 +198,29 @@ class Pipeline:
 
     # -- states ------------------------------------------------------------------------------
 
-    def _detect(self, frame: np.ndarray, t: float) -> list[BoundingBox]:
+    def _zoom(self, frame: np.ndarray, focus: BoundingBox | None) -> Crop | None:
+        """Where to look again at full resolution (perception/zoom.py): around ``focus`` (where the target is
+        thought to be) when it is small; with no focus while searching, the next tile of the scan."""
+        if self.pc.zoom_below <= 0.0 or frame.shape[0] != self.height or frame.shape[1] != self.width:
+            return None
+        if focus is not None:
+            return zoom_crop(focus, self.width, self.height, self.det.input_hw, self.pc.zoom_below)
+        if self.kf is None and self.scan:
+            return scan_crop(self.frame_index, self.width, self.height, self.det.input_hw)
+        return None
+
+    def _detect(self, frame: np.ndarray, t: float, focus: BoundingBox | None = None) -> list[BoundingBox]:
+        """The detector's boxes on the frame, and where ``_zoom`` says, on a full-resolution crop too, whose boxes
+        replace the frame's boxes of the same objects."""
         dets = self.det.detect(frame, t)
+        ms = self.det.last_ms
         self.stats.detector_runs += 1
-        self.stats.detector_ms.append(self.det.last_ms)
+        crop = self._zoom(frame, focus)
+        if crop is not None:
+            dets = merge(dets, self.det.detect(crop.of(frame), t), crop, self.pc.nms_iou)
+            ms += self.det.last_ms
+            self.stats.zoom_runs += 1
+        self.stats.detector_ms.append(ms)
         self.last_detections = dets
         return dets
 
@@ -205,7 +230,9 @@ class Pipeline:
         return ok
 
     def _search(self, frame: np.ndarray, t: float, dt: float) -> BoundingBox | None:
-        dets = self._plausible(self._detect(frame, t))
+        # Zoom on what is being confirmed, else on where the lost target was last seen.
+        focus = self.candidate or (self.memory.box if self.memory is not None else None)
+        dets = self._plausible(self._detect(frame, t, focus))
         if self.memory is not None and t - self.memory.t > self.pc.memory_time:
             self.memory = None  # long enough without the old target: anything may acquire (the next gate)
         if not dets:
@@ -284,7 +311,7 @@ class Pipeline:
             if near and score >= self.pc.redetect_below and not due:
                 meas, run_detector = tb, False
         if run_detector:
-            dets = self._plausible(self._detect(frame, t))
+            dets = self._plausible(self._detect(frame, t, pred))
             fits = [d for d in dets if consistent(pred, d, dt, self.pc.max_growth_rate)]
             meas, rejected = associate(pred, fits, self._jump_px(dt), self.pc.min_iou)
             self.stats.rejected_jumps += rejected

@@ -23,6 +23,10 @@ FRAME = np.zeros((480, 640, 3), np.uint8)
 class ScriptedDetector:
     """Stands in for the ONNX detector where the policy is under test: returns given boxes per frame."""
 
+    # One detect() a frame: an input that takes the 640x480 frame unshrunk, so the pipeline never zooms
+    # (perception/zoom.py; tested in test_zoom.py with the real detector).
+    input_hw = (640, 640)
+
     def __init__(self, script: list[list[BoundingBox]]) -> None:
         self.script = script
         self.k = 0
