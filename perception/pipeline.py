@@ -42,6 +42,12 @@ Policy (one state machine, both tracker kinds):
   198 px panorama object 370 px away after the 2 "uncertain" frames of its build-up, and the engagement
   read the jump as the gate coming near.
 
+* zoomed detection (perception/zoom.py): a target under ``zoom_below`` px (the track's prediction, the candidate
+  being confirmed, or the lost track's last box) is also detected in a crop of the detector's input size at full
+  resolution around it, whose boxes replace the whole frame's boxes of the same objects; searching with nothing
+  to confirm, one full-resolution tile of the frame a frame (``zoom_scan``; auto = rendered frames only). The
+  detector sees a 640x480 frame at half size: a 39 px ring 25 m away is 20 px to it.
+
 The output box's ``t`` is the frame's capture time.
 """
 
@@ -231,7 +237,7 @@ class Pipeline:
 
     def _search(self, frame: np.ndarray, t: float, dt: float) -> BoundingBox | None:
         # Zoom on what is being confirmed, else on where the lost target was last seen.
-        focus = self.candidate or (self.memory.box if self.memory is not None else None)
+        focus = self.candidate if self.candidate is not None else (self.memory.box if self.memory is not None else None)
         dets = self._plausible(self._detect(frame, t, focus))
         if self.memory is not None and t - self.memory.t > self.pc.memory_time:
             self.memory = None  # long enough without the old target: anything may acquire (the next gate)
