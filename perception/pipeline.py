@@ -45,7 +45,7 @@ Policy (one state machine, both tracker kinds):
 * zoomed detection (perception/zoom.py): a target under ``zoom_below`` px (the track's prediction, the candidate
   being confirmed, or the lost track's last box) is also detected in a crop of the detector's input size at full
   resolution around it, whose boxes replace the whole frame's boxes of the same objects; searching with nothing
-  to confirm, one full-resolution tile of the frame a frame (``zoom_scan``; auto = rendered frames only). The
+  small to confirm, one full-resolution tile of the frame a frame (``zoom_scan``; auto = rendered frames only). The
   detector sees a 640x480 frame at half size: a 39 px ring 25 m away is 20 px to it.
 
 The output box's ``t`` is the frame's capture time.
@@ -206,14 +206,17 @@ class Pipeline:
 
     def _zoom(self, frame: np.ndarray, focus: BoundingBox | None) -> Crop | None:
         """Where to look again at full resolution (perception/zoom.py): around ``focus`` (where the target is
-        thought to be) when it is small; with no focus while searching, the next tile of the scan."""
+        thought to be) when it is small; while searching with no small focus, the next tile of the scan: a big
+        candidate (a border box the search holds but may not acquire) must not stop the search looking for a small
+        gate elsewhere."""
         if self.pc.zoom_below <= 0.0 or frame.shape[0] != self.height or frame.shape[1] != self.width:
             return None
+        crop = None
         if focus is not None:
-            return zoom_crop(focus, self.width, self.height, self.det.input_hw, self.pc.zoom_below)
-        if self.kf is None and self.scan:
-            return scan_crop(self.frame_index, self.width, self.height, self.det.input_hw)
-        return None
+            crop = zoom_crop(focus, self.width, self.height, self.det.input_hw, self.pc.zoom_below)
+        if crop is None and self.kf is None and self.scan:
+            crop = scan_crop(self.frame_index, self.width, self.height, self.det.input_hw)
+        return crop
 
     def _detect(self, frame: np.ndarray, t: float, focus: BoundingBox | None = None) -> list[BoundingBox]:
         """The detector's boxes on the frame, and where ``_zoom`` says, on a full-resolution crop too, whose boxes

@@ -152,3 +152,34 @@ def test_the_scan_is_off_by_default_on_a_real_camera_and_on_when_asked() -> None
     assert Pipeline.from_config(cfg, real_frames=True).scan is False  # auto: unmeasured on real frames
     assert Pipeline.from_config(load_config(overrides=["perception.zoom_scan=true"]), real_frames=True).scan is True
     assert Pipeline.from_config(load_config(overrides=["perception.zoom_scan=false"])).scan is False
+
+
+class _BorderBoxDetector:
+    """A detector that sees one big box cut by the bottom border in the whole frame, and nothing in a crop."""
+
+    input_hw = IN
+
+    def __init__(self) -> None:
+        self.last_ms = 0.0
+        self.crops = 0
+
+    def detect(self, image: np.ndarray, t: float = 0.0) -> list[BoundingBox]:
+        if image.shape[:2] != (H, W):
+            self.crops += 1
+            return []
+        return [box(300, 412, 128, 136, conf=0.8)]  # its bottom edge at 480: touching the border
+
+
+def test_a_large_candidate_held_by_the_search_does_not_stop_the_scan() -> None:
+    """SIH run000 of the twelfth session's PX4 table: the search held a 128x136 px border box for 15 s (it may not
+    acquire it: cut by the border), too big to zoom on, and that stopped the tile scan, so the 40 px gate 25 m
+    ahead was never looked at at full resolution."""
+    from perception.pipeline import Pipeline
+
+    det = _BorderBoxDetector()
+    pipe = Pipeline.from_config(load_config(), detector=det)  # type: ignore[arg-type]
+    frame = np.zeros((H, W, 3), np.uint8)
+    for k in range(30):
+        assert pipe.process(frame, k / 30.0) is None  # never acquired: it touches the border
+        assert pipe.candidate is not None and pipe.candidate.w == 128  # ...but held as the candidate
+    assert det.crops == 30 and pipe.stats.zoom_runs == 30
