@@ -83,9 +83,13 @@ def _close_run(*overrides: str, accel_frd: np.ndarray | None):
         d = eng.step(t, b, LEVEL, 10.0, (), accel_frd, t)
         t += DT
     assert d is not None and d.phase is Phase.ENGAGE
-    # The gate comes near fast (1.4x a frame), and still as the same gate (companion/targetlock.py allows a
-    # detector's 1.5x jitter a frame on top of an approach); one jump from 60 to 620 px would be another object.
-    for size in (84.0, 118.0, 165.0, 231.0, 323.0, 452.0, 620.0):
+    # The 1 m ring comes near at 15 m/s (v_rel_bar) until its box is 620 px: an approach the target lock explains
+    # (a jump from 60 to 620 px, or a faster growth compounded frame by frame, would be another object).
+    f = float(CameraModel.from_config(cfg.camera).K[0, 0])
+    rng = 2.0 * f / 60.0
+    while rng > 2.0 * f / 620.0:
+        rng -= 15.0 * DT
+        size = min(620.0, 2.0 * f / max(rng, 1e-3))
         d = eng.step(t, BoundingBox(W / 2 + 40, H / 2, size, size, 0.9, t), LEVEL, 10.0, (), accel_frd, t)
         t += DT
         if d.phase is not Phase.ENGAGE:

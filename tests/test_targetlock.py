@@ -166,6 +166,47 @@ def test_a_gate_at_both_noise_extremes_after_a_gap_is_refused_the_price_of_the_c
         assert lk.check(0.3, box(2.0 * F / d1 * k1), LEVEL_R).ok, (k0, k1)
 
 
+# The engaged box of real PX4 SIH run004 (2026-12-07, linear-fast gate): (t s, box, the closing filter's range rate
+# and its std dev as of the frame before). The ring stayed ~110-125 px (truth) while its box merged with the
+# background beside it: x1.03-1.5 a frame, each within the frame-to-frame bound.
+RAMP = [(9.09, (362.4, 67.1, 95.1, 121.9), (-2.57, 0.83)), (9.13, (368.8, 66.0, 94.0, 122.7), (-3.07, 0.72)),
+        (9.15, (373.3, 64.5, 93.7, 119.8), (-3.17, 0.67)), (9.19, (367.2, 66.0, 96.2, 123.8), (-3.12, 0.64)),
+        (9.23, (354.6, 70.5, 98.8, 130.8), (-3.16, 0.63)), (9.26, (333.5, 77.5, 103.0, 135.1), (-3.45, 0.63)),
+        (9.30, (288.2, 92.6, 134.3, 147.1), (-3.78, 0.61)), (9.34, (251.7, 104.9, 156.4, 157.2), (-4.42, 0.61)),
+        (9.36, (233.5, 110.9, 167.4, 162.2), (-5.23, 0.60)), (9.40, (197.0, 123.1, 189.5, 172.2), (-5.94, 0.59)),
+        (9.44, (128.9, 149.6, 238.2, 287.2), (-6.74, 0.58))]
+
+
+@pytest.mark.parametrize("window", [0.0, 0.3], ids=["frame_to_frame", "window"])
+def test_a_box_that_grows_by_merging_with_the_background_is_refused_within_the_window(window):
+    """Frame by frame every step of RAMP is one an approach explains (x1.5 jitter each time, compounding: 122 ->
+    287 px in 0.35 s); against the boxes of the last 0.3 s the last one is not: the median of what they explain
+    is 130.8 px's, 0.21 s before: closing at most 6.74 + 3 x 0.58 = 8.5 m/s from 7.39 m explains x1.32, x1.98
+    with the jitter once. Its growth had made a time-to-contact of 0.18 s and a pass claimed 7.5 m from the
+    gate."""
+    lk = lock(window_s=window)
+    for t, (cx, cy, w, h), closing in RAMP[:-1]:
+        assert lk.check(t, BoundingBox(cx, cy, w, h, 0.5, t), LEVEL_R, closing).ok, t
+    t, (cx, cy, w, h), closing = RAMP[-1]
+    chk = lk.check(t, BoundingBox(cx, cy, w, h, 0.5, t), LEVEL_R, closing)
+    assert chk.ok is (window == 0.0), chk.why
+    if window:
+        # The window's median: 9.23's 130.8 px box, 0.21 s before
+        d, v, dt = 2.0 * F / 130.8, 6.74 + 3.0 * 0.58, 9.44 - 9.23
+        assert f"287 px vs 131 px 0.21 s before (the median of the last 0.3 s; an approach at 8.5 m/s explains " \
+            f"x{1.5 * d / (d - v * dt):.2f} at most)" in chk.why, chk.why
+
+
+def test_a_ring_back_from_a_border_cut_is_not_held_to_its_cut_size():
+    """A box the border cut is not a size to bound growth by: the ring coming back into view grows by more than
+    any approach (here x1.6 in 0.1 s at 20 m)."""
+    lk = lock()
+    assert lk.check(0.0, BoundingBox(10.0, 240.0, 30.0, 48.0, 0.8, 0.0), LEVEL_R, (-3.0, 0.5)).ok  # cut: x0 = -5
+    assert lk.check(0.033, BoundingBox(16.0, 240.0, 40.0, 48.0, 0.8, 0.0), LEVEL_R, (-3.0, 0.5)).ok  # still cut
+    assert lk.check(0.066, BoundingBox(26.0, 240.0, 48.0, 48.0, 0.8, 0.0), LEVEL_R, (-3.0, 0.5)).ok  # clear of it
+    assert lk.check(0.1, BoundingBox(30.0, 240.0, 48.0, 48.0, 0.8, 0.0), LEVEL_R, (-3.0, 0.5)).ok
+
+
 # -- in the engagement -----------------------------------------------------------------------------------------
 DT = 1.0 / 30.0
 LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
