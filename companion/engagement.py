@@ -44,7 +44,7 @@ from companion.guidance import Setpoint
 from companion.limits import CloseDetector, SafetyLimits
 from companion.pullup import PullUpParams, PullUpPlanner, arrest_loss
 from companion.reasons import Reason
-from companion.targetlock import LockParams, TargetLock
+from companion.targetlock import TargetLock
 from companion.verify import TargetVerifier, VerifyParams
 from perception.fastinit import fast_init
 from perception.types import BoundingBox
@@ -239,9 +239,7 @@ class Engagement:
 
         lock = None
         if cfg.app.target_lock:
-            g = cfg.guidance
-            lock = TargetLock(LockParams(g.v_rel_bar, g.gate_radius, cfg.los_filter.max_rate,
-                                         float(cfg.perception.max_growth_rate)), camera_model(cfg.camera))
+            lock = TargetLock.from_config(cfg, camera_model(cfg.camera))
         params = params or EngagementParams.from_config(cfg)
         eng = cls.create(params, controller, cfg.app, cfg.safety, lock)
         if cfg.app.verify.enabled:

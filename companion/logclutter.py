@@ -184,14 +184,12 @@ def apply_lock(rows: list[FrameRow], cfg: Any) -> int:
             n += r.used is None and r.box is not None
         return n
     from companion.engagement import EngagementParams, complete_clipped_box
-    from companion.targetlock import LockParams, TargetLock
+    from companion.targetlock import TargetLock
 
     p = EngagementParams.from_config(cfg)
     lock = None
-    if cfg.app.target_lock:  # built as Engagement.from_config builds it
-        g = cfg.guidance
-        lock = TargetLock(LockParams(g.v_rel_bar, g.gate_radius, cfg.los_filter.max_rate,
-                                     float(cfg.perception.max_growth_rate)), CameraModel.from_config(cfg.camera))
+    if cfg.app.target_lock:  # as Engagement.from_config builds it
+        lock = TargetLock.from_config(cfg, CameraModel.from_config(cfg.camera))
     rejected = 0
     for r in rows:
         r.used = r.box

@@ -43,12 +43,16 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from perception.fastinit import fast_init
 from perception.los import CameraModel, los_world
 from perception.types import BoundingBox
+
+if TYPE_CHECKING:
+    from companion.config import Config
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,6 +85,14 @@ class TargetLock:
         self.camera = camera
         self.rejected = 0  # boxes rejected since the last reset
         self.reset()
+
+    @classmethod
+    def from_config(cls, cfg: Config, camera: CameraModel) -> TargetLock:
+        """The engagement's lock (guidance's v_rel_bar and gate radius, the LOS filter's rate limit), for the
+        flight core and for whoever re-judges its logs (companion/logclutter.py)."""
+        g = cfg.guidance
+        return cls(LockParams(g.v_rel_bar, g.gate_radius, cfg.los_filter.max_rate,
+                              float(cfg.perception.max_growth_rate)), camera)
 
     def reset(self) -> None:
         self._ref: tuple[float, float, np.ndarray, float] | None = None  # (t, size px, world LOS, closing m/s)
