@@ -83,6 +83,7 @@ class TargetLock:
     def __init__(self, params: LockParams, camera: CameraModel) -> None:
         self.p = params
         self.camera = camera
+        self._f = float(camera.K[0, 0])  # px, the focal length (read every frame, up to a window's boxes a frame)
         self.rejected = 0  # boxes rejected since the last reset
         self.reset()
 
@@ -114,7 +115,7 @@ class TargetLock:
         p = self.p
         dt = max(dt, 0.0)
         if p.gate_radius > 0.0:
-            d = 2.0 * float(self.camera.K[0, 0]) * p.gate_radius / max(size_ref, 1e-6)
+            d = 2.0 * self._f * p.gate_radius / max(size_ref, 1e-6)
             close = (p.v_max if v is None else v) * dt
             growth = math.inf if close >= d else d / (d - close)
         else:
@@ -126,7 +127,7 @@ class TargetLock:
         near the gate ``v_max / d`` (d the least range closing at ``v`` leaves; the relative speed across the
         line of sight is bounded by ``v_max`` only), whichever is larger."""
         p = self.p
-        f = float(self.camera.K[0, 0])
+        f = self._f
         dt = max(dt, 0.0)
         rate = p.max_los_rate
         if p.gate_radius > 0.0:
@@ -158,7 +159,8 @@ class TargetLock:
             recent = self._recent
             while recent and t - recent[0][0] > self.p.window_s:
                 recent.popleft()
-            if recent:
+            # Each bound is at least size_jitter x its box: within that of the window's smallest box, nothing to do.
+            if recent and size > self.p.size_jitter * min(s_k for _, s_k, _ in recent):
                 # The largest size each box of the window explains now; their median, so that one box the detector
                 # drew small (a ring's box 0.66x its size for a frame, seen in process) does not refuse the ring.
                 most = sorted((s_k * self.size_bound(s_k, t - t_k, max(v_k, v_now)), t_k, s_k, max(v_k, v_now))
