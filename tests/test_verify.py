@@ -191,7 +191,10 @@ def test_no_engagement_begins_on_a_cut_box_but_one_that_becomes_cut_flies_on() -
     e = _eng()
     ds, t = _feed(e, [BoundingBox(320, 300, 40, 40)] * n)
     assert e.phase is Phase.ENGAGE
-    grow = [BoundingBox(320, 300, s, s) for s in np.linspace(60, 400, 20)]  # bottom edge past 480 from s = 360
+    # A 1 m ring approached at 15 m/s (v_rel_bar) from 60 to 400 px: a growth the target lock explains (the same
+    # sizes in 20 frames, 22 m/s, compound past what any approach explains); its bottom edge is past 480 from 360 px.
+    f = 2.0 * float(CameraModel.from_config(load_config().camera).K[0, 0])  # px x m: size = f / range for r = 1 m
+    grow = [BoundingBox(320, 300, f / d, f / d) for d in np.arange(f / 60, f / 400, -15.0 * DT)]
     ds, _ = _feed(e, grow, t)
     assert all(d.phase in (Phase.ENGAGE, Phase.PASS) for d in ds)
     assert not any("rejected" in ev for d in ds for ev in d.events)
