@@ -97,7 +97,7 @@ class TargetLock:
 
     def reset(self) -> None:
         self._ref: tuple[float, float, np.ndarray, float] | None = None  # (t, size px, world LOS, closing m/s)
-        self._recent: deque[tuple[float, float, float]] = deque()  # (t, size px, closing m/s) within window_s
+        self._recent: deque[tuple[float, float, float]] = deque()  # (t, size px, closing m/s), the last window_s
         self.rejected = 0
 
     def closing_bound(self, closing: tuple[float, float] | None) -> float:
@@ -147,6 +147,9 @@ class TargetLock:
             self._ref = (t, size, los, v_now)
             self._remember(t, box, size, v_now)
             return LockCheck(True)
+        recent = self._recent
+        while recent and t - recent[0][0] > self.p.window_s:
+            recent.popleft()
         t_ref, s_ref, l_ref, v_ref = self._ref
         dt = t - t_ref
         v = max(v_ref, v_now)  # the speed may have grown in between: the IMU-driven filter says by how much
@@ -156,9 +159,6 @@ class TargetLock:
             if ratio > bound:
                 return self._reject(f"box {size:.0f} px vs {s_ref:.0f} px {dt:.2f} s before (an approach at "
                                     f"{v:.1f} m/s explains x{bound:.2f} at most)")
-            recent = self._recent
-            while recent and t - recent[0][0] > self.p.window_s:
-                recent.popleft()
             # Each bound is at least size_jitter x its box: within that of the window's smallest box, nothing to do.
             if recent and size > self.p.size_jitter * min(s_k for _, s_k, _ in recent):
                 # The largest size each box of the window explains now; their median, so that one box the detector
