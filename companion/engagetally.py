@@ -10,6 +10,12 @@ rule of ``companion perception eval``'s sequences):
 * ``engaged_frames`` / ``engaged_frames_wrong`` / ``engaged_frames_on_gate``: labelled ENGAGE frames with a box;
 * ``passes_claimed`` / ``passes_claimed_wrong``: "gate close" (PASS or pull-up) decisions, and those taken on a
   box that was not on the gate (the last box the engagement used when the close frame had none);
+* ``begun_oversize`` / ``engaged_frames_oversize`` / ``passes_claimed_oversize``: of those on a gate by the centre
+  rule, the boxes whose larger side is more than ``size_ratio`` (2) times the gate box's: a box of the gate merged
+  with background, or another object centred on the gate (on real PX4 a same-coloured disc 3x the ring's size
+  drawn behind it). The centre rule alone counts them as on the gate; their size is what the close detector reads
+  as range, so a pass claimed on one is claimed at the wrong place. Kept apart so the centre rule's counts stay
+  comparable with earlier tallies;
 * ``gate_spells`` / ``never_engaged_spells``: runs of at least ``min_spell`` labelled frames with a gate in view,
   and those during which no engagement was flying (ENGAGE / PASS / RECOVER) nor began.
 
@@ -33,9 +39,22 @@ def on_gate(box: BoundingBox, gts: np.ndarray) -> bool:
     return any(g[0] <= box.cx <= g[2] and g[1] <= box.cy <= g[3] for g in gts)
 
 
+def oversize(box: BoundingBox, gts: np.ndarray, ratio: float, grown: float = 0.0) -> bool:
+    """The box is on a labelled gate by its centre, but its larger side is more than ``ratio`` times that of every
+    gate box its centre is in. ``grown``: px each label was grown by on every side (taken off again: a pose's
+    error moves a box, it does not scale it)."""
+    s = max(box.w, box.h)
+    sides = [max(g[2] - g[0], g[3] - g[1]) - 2.0 * grown for g in gts
+             if g[0] <= box.cx <= g[2] and g[1] <= box.cy <= g[3]]
+    return bool(sides) and all(s > ratio * max(side, 1.0) for side in sides)
+
+
 @dataclass
 class EngagementTally:
     min_spell: int = 5  # frames: a shorter glimpse of the gate is not an engagement missed
+    size_ratio: float = 2.0  # a box on a gate more than this times its size is oversize (the detector's box/truth
+    # size between frames reached 1.37x at most on real PX4: docs/verification-px4.md)
+    grown: float = 0.0  # px the labels given to add() were grown by (companion/logclutter.py's margin)
     engagements: int = 0
     begun_on_wrong: int = 0
     begun_unlabelled: int = 0
@@ -44,6 +63,9 @@ class EngagementTally:
     engaged_frames_on_gate: int = 0
     passes_claimed: int = 0
     passes_claimed_wrong: int = 0
+    begun_oversize: int = 0
+    engaged_frames_oversize: int = 0
+    passes_claimed_oversize: int = 0
     gate_spells: int = 0
     never_engaged_spells: int = 0
     ends: dict[str, int] = field(default_factory=dict)
@@ -58,6 +80,10 @@ class EngagementTally:
             return None
         return not (len(gts) > 0 and on_gate(box, gts))
 
+    def _oversize(self, box: BoundingBox | None, gts: np.ndarray | None) -> bool:
+        """On a labelled gate by the centre rule, but too big to be its box."""
+        return box is not None and gts is not None and oversize(box, gts, self.size_ratio, self.grown)
+
     def add(self, phase: str, events: tuple[str, ...], box: BoundingBox | None, gts: np.ndarray | None,
             end: str = "") -> None:
         """One frame: the phase after the core's step, its gate events, the box given to the core, the labels
@@ -69,6 +95,7 @@ class EngagementTally:
             w = self._wrong(box, gts)
             self.begun_on_wrong += bool(w)
             self.begun_unlabelled += w is None
+            self.begun_oversize += w is False and self._oversize(box, gts)
         if phase == "ENGAGE" and box is not None:
             self._last = (box, gts)
             w = self._wrong(box, gts)
@@ -76,10 +103,13 @@ class EngagementTally:
                 self.engaged_frames += 1
                 self.engaged_frames_wrong += w
                 self.engaged_frames_on_gate += not w
+                self.engaged_frames_oversize += not w and self._oversize(box, gts)
         if close:
             self.passes_claimed += 1
             b, g = (box, gts) if box is not None else (self._last or (None, None))
-            self.passes_claimed_wrong += bool(self._wrong(b, g))
+            w = self._wrong(b, g)
+            self.passes_claimed_wrong += bool(w)
+            self.passes_claimed_oversize += w is False and self._oversize(b, g)
         if end:
             self.ends[end] = self.ends.get(end, 0) + 1
         self._spell_step(gts, engaged or phase in COMMANDING)
@@ -102,7 +132,8 @@ class EngagementTally:
         self._close_spell()
         d = {k: getattr(self, k) for k in (
             "engagements", "begun_on_wrong", "begun_unlabelled", "engaged_frames", "engaged_frames_wrong",
-            "engaged_frames_on_gate", "passes_claimed", "passes_claimed_wrong", "gate_spells",
+            "engaged_frames_on_gate", "passes_claimed", "passes_claimed_wrong", "begun_oversize",
+            "engaged_frames_oversize", "passes_claimed_oversize", "gate_spells",
             "never_engaged_spells")}
         d["on_gate_share"] = (round(self.engaged_frames_on_gate / self.engaged_frames, 4)
                               if self.engaged_frames else None)

@@ -23,7 +23,8 @@ What each frame is made of, from the log alone:
   engagement's completion of a box cut by the image border: the truth box is clipped to the image too.
 
 A box is on the gate when its centre lies inside the true box grown by ``margin`` px on every side (engagetally's
-rule with a tolerance for the reconstruction; docs/verification-px4.md says how the default was chosen).
+rule with a tolerance for the reconstruction; docs/verification-px4.md says how the default was chosen). Such a box
+more than twice the true box's size is also counted apart as *oversize* (engagetally's ``*_oversize``).
 """
 
 from __future__ import annotations
@@ -247,7 +248,7 @@ def iou(a: BoundingBox, b: BoundingBox) -> float:
 def tally_rows(rows: list[FrameRow], margin: float = MARGIN_PX, min_spell: int = MIN_SPELL) -> dict[str, Any]:
     """engagetally's counts over a flight's frames (truth boxes grown by ``margin``), plus the distribution of
     the engaged boxes' error against the truth (IoU, centre distance px) on the frames judged on the gate."""
-    tally = EngagementTally(min_spell=min_spell)
+    tally = EngagementTally(min_spell=min_spell, grown=margin)
     ious, dists = [], []
     closes: list[tuple[float, bool]] = []  # (t, judged wrong) of each pass claim, as the tally judges it
     last: tuple[BoundingBox, np.ndarray | None] | None = None
@@ -347,6 +348,10 @@ def _wrong(d: dict[str, Any]) -> bool:
     return bool(d["begun_on_wrong"] or d["engaged_frames_wrong"] or d["passes_claimed_wrong"])
 
 
+def _oversize(d: dict[str, Any]) -> bool:
+    return bool(d["begun_oversize"] or d["engaged_frames_oversize"] or d["passes_claimed_oversize"])
+
+
 def report(paths: list[str], margin: float = MARGIN_PX,
            skipped: list[str] | None = None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Every flight under ``paths`` judged, and the totals. Among several flights, one without frames to judge
@@ -374,6 +379,7 @@ def report(paths: list[str], margin: float = MARGIN_PX,
     tot["runs_without_frames"] = len(reasons)
     tot["runs_through"] = sum(bool(d["through"]) for d in per)
     tot["runs_with_wrong"] = sum(_wrong(d) for d in per)
+    tot["runs_with_oversize"] = sum(_oversize(d) for d in per)
     tot["margin_px"] = margin
     late = np.array([d["engaged_after_crossing_s"] for d in per if d.get("engaged_after_crossing_s") is not None])
     tot["runs_crossed"] = len(late)
@@ -394,6 +400,8 @@ def run_line(d: dict[str, Any]) -> str:
             f"{d['never_engaged_spells']}, lock rejected {d['lock_rejected']}"
             + (f" (claimed on wrong after crossing the gate's plane: {d['passes_claimed_wrong_after_crossing']})"
                if d["passes_claimed_wrong"] else "")
+            + (f"; on the gate but over {EngagementTally.size_ratio:g}x its size: begun {d['begun_oversize']}, frames "
+               f"{d['engaged_frames_oversize']}, passes claimed {d['passes_claimed_oversize']}" if _oversize(d) else "")
             + (f"; engaged {late:.2f} s after crossing the gate's plane"
                if (late := d.get("engaged_after_crossing_s")) else ""))
 
@@ -424,7 +432,7 @@ def _cmd(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     for d in per:
-        if args.all or _wrong(d) or (d.get("engaged_after_crossing_s") or 0.0) > LATE_S:
+        if args.all or _wrong(d) or _oversize(d) or (d.get("engaged_after_crossing_s") or 0.0) > LATE_S:
             print(run_line(d))
     out: dict[str, Any] = {"total": tot}
     if args.json:

@@ -301,6 +301,11 @@ def _tally_line(name: str, e: dict[str, Any]) -> str:
               f"(on the gate {e['on_gate_share']:.2f})")
     if e["gate_spells"]:
         s += f", {e['never_engaged_spells']}/{e['gate_spells']} gate-in-view spells never engaged"
+    if any(e.get(k) for k in ("begun_oversize", "engaged_frames_oversize", "passes_claimed_oversize")):
+        from companion.engagetally import EngagementTally
+
+        s += (f"; on a gate but over {EngagementTally.size_ratio:g}x its label: {e['begun_oversize']} begun, "
+              f"{e['engaged_frames_oversize']} frames, {e['passes_claimed_oversize']} pass(es) claimed")
     return s
 
 

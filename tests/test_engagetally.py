@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from companion.config import load_config
-from companion.engagetally import EngagementTally, total
+from companion.engagetally import EngagementTally, oversize, total
 from perception.types import BoundingBox
 
 GATE = np.array([[100.0, 100.0, 200.0, 200.0]])
@@ -96,3 +96,32 @@ def test_replay_measures_every_engagement(tmp_path: Path) -> None:
     col = header.index("engagement")
     assert max(int(r.split(",")[col]) for r in rows[1:]) >= 2
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["engagements"]["engagements"] == 2
+
+
+def test_a_box_on_the_gate_but_over_twice_its_size_is_counted_oversize() -> None:
+    # The gate's box is 100 px. A 150 px box centred on it is the gate's (detector noise, a tilted ring); a 250 px
+    # box centred on it is something else centred there (real PX4: a disc 3x the ring behind it), which the centre
+    # rule alone takes for the gate.
+    t = EngagementTally()
+    big = BoundingBox(150, 150, 250, 240)
+    t.add("ENGAGE", ("gate 1 engaged",), big, GATE)
+    t.add("ENGAGE", (), BoundingBox(150, 150, 150, 150), GATE)
+    t.add("ENGAGE", (), big, GATE)
+    t.add("PASS", ("gate 1 close",), big, GATE)
+    t.add("ENGAGE", (), BoundingBox(400, 300, 250, 250), GATE)  # off the gate: wrong, not oversize
+    d = t.finish()
+    assert (d["begun_on_wrong"], d["begun_oversize"]) == (0, 1)
+    assert (d["engaged_frames"], d["engaged_frames_wrong"], d["engaged_frames_oversize"]) == (4, 1, 2)
+    assert (d["passes_claimed_wrong"], d["passes_claimed_oversize"]) == (0, 1)
+    assert total([d, d])["engaged_frames_oversize"] == 4
+
+
+def test_oversize_takes_off_what_the_labels_were_grown_by() -> None:
+    # logclutter grows the true box by its margin for the centre rule (a pose error moves a box); a size is
+    # judged against the true box: 100 px grown by 24 px a side is 148 px, and a 210 px box is over 2x the 100.
+    grown = np.array([[76.0, 76.0, 224.0, 224.0]])
+    box = BoundingBox(150, 150, 210, 210)
+    assert oversize(box, grown, 2.0, grown=24.0)
+    assert not oversize(box, grown, 2.0)  # against 148 px it would be 1.4x
+    assert not oversize(BoundingBox(150, 150, 190, 190), grown, 2.0, grown=24.0)
+    assert not oversize(BoundingBox(400, 400, 500, 500), grown, 2.0, grown=24.0)  # not on the gate at all
