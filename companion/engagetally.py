@@ -10,6 +10,8 @@ rule of ``companion perception eval``'s sequences):
 * ``engaged_frames`` / ``engaged_frames_wrong`` / ``engaged_frames_on_gate``: labelled ENGAGE frames with a box;
 * ``passes_claimed`` / ``passes_claimed_wrong``: "gate close" (PASS or pull-up) decisions, and those taken on a
   box that was not on the gate (the last box the engagement used when the close frame had none);
+  ``passes_claimed_unlabelled``: claims that box's frame has no label for (neither right nor wrong: on the real
+  dev sequences both models' one claim was such, on boxes of the background, 2026-12-07);
 * ``begun_oversize`` / ``engaged_frames_oversize`` / ``passes_claimed_oversize``: of those on a gate by the centre
   rule, the boxes whose larger side is more than ``size_ratio`` (2) times the gate box's: a box of the gate merged
   with background, or another object centred on the gate (on real PX4 a same-coloured disc 3x the ring's size
@@ -63,6 +65,7 @@ class EngagementTally:
     engaged_frames_on_gate: int = 0
     passes_claimed: int = 0
     passes_claimed_wrong: int = 0
+    passes_claimed_unlabelled: int = 0
     begun_oversize: int = 0
     engaged_frames_oversize: int = 0
     passes_claimed_oversize: int = 0
@@ -109,6 +112,7 @@ class EngagementTally:
             b, g = (box, gts) if box is not None else (self._last or (None, None))
             w = self._wrong(b, g)
             self.passes_claimed_wrong += bool(w)
+            self.passes_claimed_unlabelled += w is None
             self.passes_claimed_oversize += w is False and self._oversize(b, g)
         if end:
             self.ends[end] = self.ends.get(end, 0) + 1
@@ -132,8 +136,8 @@ class EngagementTally:
         self._close_spell()
         d = {k: getattr(self, k) for k in (
             "engagements", "begun_on_wrong", "begun_unlabelled", "engaged_frames", "engaged_frames_wrong",
-            "engaged_frames_on_gate", "passes_claimed", "passes_claimed_wrong", "begun_oversize",
-            "engaged_frames_oversize", "passes_claimed_oversize", "gate_spells",
+            "engaged_frames_on_gate", "passes_claimed", "passes_claimed_wrong", "passes_claimed_unlabelled",
+            "begun_oversize", "engaged_frames_oversize", "passes_claimed_oversize", "gate_spells",
             "never_engaged_spells")}
         d["on_gate_share"] = (round(self.engaged_frames_on_gate / self.engaged_frames, 4)
                               if self.engaged_frames else None)

@@ -296,6 +296,8 @@ def _plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
 def _tally_line(name: str, e: dict[str, Any]) -> str:
     s = (f"{name}: {e['engagements']} engagement(s), {e['begun_on_wrong']} begun on a wrong object, "
          f"{e['passes_claimed_wrong']}/{e['passes_claimed']} pass(es) claimed on one")
+    if e.get("passes_claimed_unlabelled"):
+        s += f" ({e['passes_claimed_unlabelled']} on an unlabelled frame: not judged)"
     if e["engaged_frames"]:
         s += (f", {e['engaged_frames_wrong']}/{e['engaged_frames']} labelled engaged frames on one "
               f"(on the gate {e['on_gate_share']:.2f})")

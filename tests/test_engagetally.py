@@ -125,3 +125,16 @@ def test_oversize_takes_off_what_the_labels_were_grown_by() -> None:
     assert not oversize(box, grown, 2.0)  # against 148 px it would be 1.4x
     assert not oversize(BoundingBox(150, 150, 190, 190), grown, 2.0, grown=24.0)
     assert not oversize(BoundingBox(400, 400, 500, 500), grown, 2.0, grown=24.0)  # not on the gate at all
+
+
+def test_a_pass_claimed_on_an_unlabelled_frame_is_counted_as_not_judged() -> None:
+    # On the real dev sequences the one claim of each model was judged on the last engaged box, on a frame without
+    # a label: neither right nor wrong, and now said so rather than silently "not wrong".
+    t = EngagementTally()
+    t.add("ENGAGE", ("gate 1 engaged",), ON, GATE)
+    t.add("ENGAGE", (), OFF, None)
+    t.add("PASS", ("gate 1 close",), None, None)
+    t.add("ENGAGE", ("gate 2 engaged",), ON, GATE)
+    t.add("PASS", ("gate 2 close",), ON, GATE)
+    d = t.finish()
+    assert (d["passes_claimed"], d["passes_claimed_wrong"], d["passes_claimed_unlabelled"]) == (2, 0, 1)

@@ -11,6 +11,10 @@ sequences and left out of the frame set.
 
 OUT/images + labels: every labelled gate frame + the checked gate-free frames; OUT/sequences/{cyberzoo,
 basement}: the flights' frames in order (5 Hz snapshots: evaluate with ``--fps 5``).
+
+The repository keeps the basement flight's frames in two folders whose names differ only in case, ``basement/``
+and ``Basement/`` (images 00111-00148, 32 labelled: one folder on its authors' Windows). Both are read; before
+2026-12-07 only ``basement/`` was, and every real-video figure up to then is on 459 basement frames, not 491.
 """
 
 from __future__ import annotations
@@ -44,13 +48,31 @@ _FIT = "fit_distance_with_gate_area"
 EXTRA = (("czdist", f"{_FIT}/4_16_cyberzoo_dis.mat", f"{_FIT}/cyberzoo_distance", 0, False),)
 
 
+def image_folder(src: Path, images: str, tmp: Path) -> Path:
+    """``src/images``, or when the repository splits it over folders whose names differ only in case (basement/
+    and Basement/), their files together in a folder under ``tmp``."""
+    parent = (src / images).parent
+    name = Path(images).name
+    same = sorted(d for d in parent.iterdir() if d.is_dir() and d.name.lower() == name.lower())
+    if len(same) <= 1:
+        return src / images
+    merged = tmp / "merged" / name
+    merged.mkdir(parents=True)
+    for d in same:
+        for f in d.iterdir():
+            if f.is_file() and not (merged / f.name).exists():
+                shutil.copy(f, merged / f.name)
+    return merged
+
+
 def build(src: Path, out: Path) -> dict[str, dict[str, int]]:
     counts = {}
     for name, mat, images, first, by_index in SOURCES + EXTRA:
-        labels = read_mat_labels(src / mat, src / images, first, by_index)
         with tempfile.TemporaryDirectory() as tmp:
             t = Path(tmp)
-            counts[name] = convert(labels, src / images, t, "ccw", prefix=name)
+            folder = image_folder(src, images, t)
+            labels = read_mat_labels(src / mat, folder, first, by_index)
+            counts[name] = convert(labels, folder, t, "ccw", prefix=name)
             checked = {f"{name}_img_{n}" for n in CHECKED_GATE_FREE.get(name, "").split()}
             seq = out / "sequences" / name
             if name in CHECKED_GATE_FREE:
