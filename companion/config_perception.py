@@ -91,6 +91,11 @@ class PerceptionConfig(Section):
         description="s after a lost track's last measurement during which a new acquisition must be consistent "
         "with it (size and position) or wait; 0 = no memory",
     )
+    refuse_time: Seconds = Field(
+        1.0, ge=0.0, le=10.0,
+        description="s an object the app refused as not the target (companion/verify.py, at acquisition) is not "
+        "acquired again, followed while it stays in view; 0 = the app's refusal only resets the tracker",
+    )
     memory_min_score: Number = Field(
         0.5, ge=0.0, le=1.0,
         description="track score at its last measurement a lost track needs to be remembered (a weak track may "

@@ -64,9 +64,21 @@ class CoreStep:
     # The tracker must drop its target: a new engagement phase began (RECOVER: the passed gate), or the engagement
     # refused its box several frames in a row (it holds another object; EngagementParams.drop_tracker_after).
     reset_tracker: bool = False
+    # The tracker must look past its candidate: verification refused it several frames in a row at ACQUIRE
+    # (perception/pipeline.py ``refuse``).
+    refuse_candidate: bool = False
     passes_confirmed: int = 0
     hover: HoverEstimate | None = None  # a new hover-thrust estimate taken this step (for the log)
     hover_input: tuple[float, float] | None = None  # (commanded thrust, specific force up m/s^2) behind it
+
+    def tell_tracker(self, perception: object) -> None:
+        """What this step asks of the perception that made its box (a pipeline, or a camera holding one): look past
+        a refused candidate, or forget the target (a passed gate, another object held). Every loop calls this;
+        perception without a tracker has neither method."""
+        if self.refuse_candidate and (refuse := getattr(perception, "refuse", None)) is not None:
+            refuse()
+        elif self.reset_tracker and (reset := getattr(perception, "reset", None)) is not None:
+            reset()
 
 
 @dataclass
@@ -120,7 +132,7 @@ class FlightCore:
                     hover_input = (self._hover_u, a_up)
             hover = self._hover_update(inp.imu, d.setpoint.thrust, a_up)
         reset = (d.changed and d.phase is Phase.RECOVER) or self.engagement.drop_tracker
-        return CoreStep(d, reset_tracker=reset,
+        return CoreStep(d, reset_tracker=reset, refuse_candidate=self.engagement.refuse_candidate,
                         passes_confirmed=self.engagement.passes_confirmed, hover=hover,
                         hover_input=hover_input if hover is not None else None)
 

@@ -226,8 +226,13 @@ class Engagement:
     verifier: TargetVerifier | None = None  # is a box the configured target (companion/verify.py); None = no check
     _unverified: bool = False  # the last box failed verification (one event per spell)
     _rejected_now: bool = False  # this frame's box was rejected (verification or lock): a box is in view
+    _why: str = ""  # why verification rejected this frame's box
     refused: int = 0  # ENGAGE frames in a row whose box was refused (verification or lock); frames without a box pass
     drop_tracker: bool = False  # this step: the tracker holds another object (drop_tracker_after refusals): drop it
+    # ACQUIRE frames in a row whose candidate verification refused as not the target (its own rules, not the lock's
+    # "not one object"), and, this step, that the tracker is to look past it (every drop_tracker_after of them)
+    refused_candidate: int = 0
+    refuse_candidate: bool = False
     used_box: BoundingBox | None = None  # the box this step's decisions used (None: none, or rejected)
     awaiting: bool = False  # a stable candidate waits for the operator's confirmation (app.engage confirm)
     _confirm: bool | None = None  # this step's confirmation (None: not needed)
@@ -274,6 +279,7 @@ class Engagement:
             box = whole if whole.is_valid(p.width, p.height) else box
         lock_event = ""
         self._rejected_now = False
+        self._why = ""
         if valid and self.verifier is not None and self.phase in (Phase.ACQUIRE, Phase.ENGAGE):
             assert box is not None
             why = self._verify(self.verifier, t, box, q_wxyz_ned_frd)
@@ -281,7 +287,7 @@ class Engagement:
                 if not self._unverified:
                     lock_event = (f"gate {self.passes[-1].gate}: box rejected, {why}" if self.phase is Phase.ENGAGE
                                   else f"candidate rejected, {why}")
-                valid, box, self._rejected_now = False, None, True
+                valid, box, self._rejected_now, self._why = False, None, True, why
             self._unverified = bool(why)
         if valid and self.phase is Phase.ENGAGE and self.lock is not None:
             assert box is not None
@@ -302,12 +308,24 @@ class Engagement:
             self.refused = 0
         k = p.drop_tracker_after
         self.drop_tracker = self._rejected_now and engaged and k > 0 and self.refused % k == 0
+        # A candidate refused by verification is refused again next frame while the tracker holds it: on real PX4
+        # (x500, 2026-12-07, run091) a 330 px box cut by the border was held for 15 s while the gate crossed the
+        # view. Told, the tracker looks past it for a while (perception's refuse_time).
+        if self.phase is Phase.ACQUIRE and self._rejected_now and not self._why.startswith("not one object"):
+            self.refused_candidate += 1
+        elif valid or self.phase is not Phase.ACQUIRE:
+            self.refused_candidate = 0
+        self.refuse_candidate = (self.phase is Phase.ACQUIRE and self._rejected_now and k > 0
+                                 and self.refused_candidate > 0 and self.refused_candidate % k == 0)
         d = self._step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt, events)
         if lock_event:
             d = replace(d, events=(*d.events, lock_event))
         if self.drop_tracker:
             d = replace(d, events=(*d.events, f"gate {self.passes[-1].gate}: tracker told to drop its target (its box "
                                                f"refused {self.refused} frames in a row)"))
+        if self.refuse_candidate:
+            d = replace(d, events=(*d.events, f"tracker told to look past its candidate (refused "
+                                               f"{self.refused_candidate} frames in a row)"))
         return d
 
     def _step(self, t: float, box: BoundingBox | None, valid: bool, q_wxyz_ned_frd: np.ndarray,

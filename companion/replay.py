@@ -147,8 +147,7 @@ def replay(
             # closing speed runs on its prior, frames have no age.
             step = core.step(FrameInput(t, box, q))
             d = step.decision
-            if step.reset_tracker:
-                pipe.reset()  # as the flight does at RECOVER: the tracker drops the gate just passed
+            step.tell_tracker(pipe)  # as the flight does
             end_name = ""
             if d.changed and d.phase.done:
                 ended = f"{d.phase.value} ({d.reason.name if d.reason else ''}): {d.why}"

@@ -42,6 +42,13 @@ Policy (one state machine, both tracker kinds):
   198 px panorama object 370 px away after the 2 "uncertain" frames of its build-up, and the engagement
   read the jump as the gate coming near.
 
+* an object the app refused (``refuse``: its verification, companion/verify.py, refused the candidate several
+  frames in a row): the track or candidate is dropped and, for ``refuse_time``, the detection that continues that
+  object (followed frame to frame, as a track is) may not acquire, continue or challenge a track. Why: on real PX4
+  (x500, 2026-12-07, run091) a 330x345 px box 5 px from the border was acquired by the pipeline, refused by
+  verification as cut every frame, and held for 15 s while the 39 px gate crossed the view: the search never ran.
+  Once the time is up it may acquire again (a gate refused while cut, now in view, is taken back).
+
 * zoomed detection (perception/zoom.py): a target under ``zoom_below`` px (the track's prediction, the candidate
   being confirmed, or the lost track's last box) is also detected in a crop of the detector's input size at full
   resolution around it, whose boxes replace the whole frame's boxes of the same objects; searching with nothing
@@ -93,6 +100,15 @@ class _Candidate:
     misses: int = 0
 
 
+@dataclass
+class _Refused:
+    """An object the app refused: its last box, when it was seen, and when it was refused."""
+
+    box: BoundingBox
+    t_seen: float
+    t_refused: float
+
+
 @dataclass(frozen=True)
 class _Memory:
     """The lost track: its last filtered box and when it was last measured."""
@@ -117,6 +133,7 @@ class PipelineStats:
     switches: int = 0  # the track moved to a persistently better candidate
     held_back: int = 0  # frames an acquisition or switch waited: inconsistent with the (lost) track, or border-cut
     unconfident: int = 0  # frames with no box because the target was uncertain
+    refusals: int = 0  # objects the app refused as not the target (``Pipeline.refuse``)
     detector_ms: list[float] = field(default_factory=list)
     tracker_ms: list[float] = field(default_factory=list)
     total_ms: list[float] = field(default_factory=list)
@@ -131,7 +148,7 @@ class PipelineStats:
             "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted,
             "rejected_jumps": self.rejected_jumps, "acquisitions": self.acquisitions, "losses": self.losses,
             "rejected_inconsistent": self.rejected_inconsistent, "switches": self.switches,
-            "unconfident": self.unconfident, "held_back": self.held_back,
+            "unconfident": self.unconfident, "held_back": self.held_back, "refusals": self.refusals,
             "detector_ms_median": med(self.detector_ms), "tracker_ms_median": med(self.tracker_ms),
             "pipeline_ms_median": med(self.total_ms),
         }
@@ -178,8 +195,36 @@ class Pipeline:
         self.memory: _Memory | None = None
         self.last_box: BoundingBox | None = None
         self.held_score = 0.0  # the track's score at its last measurement
+        self.refused: _Refused | None = None
         if self.tracker is not None:
             self.tracker.active = False
+
+    def refuse(self) -> None:
+        """The app refused the object this pipeline holds (the track, else the candidate) as not the target: drop
+        it and, for ``refuse_time``, look past it (its continuation is no detection). Without a refuse time,
+        a reset."""
+        box = self.last_box if self.kf is not None else self.candidate
+        t = self.t_prev
+        self.reset()
+        if box is not None and t is not None and self.pc.refuse_time > 0.0:
+            self.refused = _Refused(box, t, t)
+        self.stats.refusals += 1
+
+    def _past_refused(self, dets: list[BoundingBox], t: float) -> list[BoundingBox]:
+        """``dets`` without the one continuing the refused object (which it follows); all once the time is up."""
+        r = self.refused
+        if r is None:
+            return dets
+        if t - r.t_refused > self.pc.refuse_time:
+            self.refused = None
+            return dets
+        dt = t - r.t_seen
+        fits = [d for d in dets if consistent(r.box, d, dt, self.pc.max_growth_rate)]
+        m, _ = associate(r.box, fits, self._jump_px(dt), self.pc.min_iou)
+        if m is None:
+            return dets
+        r.box, r.t_seen = m, t
+        return [d for d in dets if d is not m]
 
     @property
     def tracking(self) -> bool:
@@ -241,7 +286,7 @@ class Pipeline:
     def _search(self, frame: np.ndarray, t: float, dt: float) -> BoundingBox | None:
         # Zoom on what is being confirmed, else on where the lost target was last seen.
         focus = self.candidate if self.candidate is not None else (self.memory.box if self.memory is not None else None)
-        dets = self._plausible(self._detect(frame, t, focus))
+        dets = self._past_refused(self._plausible(self._detect(frame, t, focus)), t)
         if self.memory is not None and t - self.memory.t > self.pc.memory_time:
             self.memory = None  # long enough without the old target: anything may acquire (the next gate)
         if not dets:
@@ -320,7 +365,7 @@ class Pipeline:
             if near and score >= self.pc.redetect_below and not due:
                 meas, run_detector = tb, False
         if run_detector:
-            dets = self._plausible(self._detect(frame, t, pred))
+            dets = self._past_refused(self._plausible(self._detect(frame, t, pred)), t)
             fits = [d for d in dets if consistent(pred, d, dt, self.pc.max_growth_rate)]
             meas, rejected = associate(pred, fits, self._jump_px(dt), self.pc.min_iou)
             self.stats.rejected_jumps += rejected

@@ -117,6 +117,9 @@ class RenderedCamera:
     def reset(self) -> None:
         self.pipeline.reset()
 
+    def refuse(self) -> None:
+        self.pipeline.refuse()
+
     def render(
         self, p_enu: np.ndarray, R_enu_flu: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: float,
         t: float = 0.0,

@@ -62,6 +62,10 @@ class PipelinePerception:
         """Forget the track (a gate was passed: the next one is a new target, not a jump)."""
         self.pipeline.reset()
 
+    def refuse(self) -> None:
+        """Look past the object held (the app refused it as not the target)."""
+        self.pipeline.refuse()
+
 
 class CameraFailed(RuntimeError):
     """The camera ended or reported an error (one line: which source, what)."""

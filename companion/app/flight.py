@@ -380,10 +380,7 @@ class FlightApp(Monitors, SafeEnds):
             for ev in d.events:
                 self.log.event(ev)
             self.stats.gates_passed = step.passes_confirmed
-            if step.reset_tracker:
-                reset = getattr(self.perception, "reset", None)
-                if reset is not None:
-                    reset()  # the tracker must not hold on to (or coast) the gate we just passed
+            step.tell_tracker(self.perception)  # not to hold on to (or coast) a passed gate or a refused candidate
             self._note_hover(step)
             if self._live is not None:  # never waits: a copy into shared memory only when the view wants one
                 self._live.offer(frame.image, ViewInfo(box, d.phase.value, core.engagement.awaiting, d.why))

@@ -228,10 +228,7 @@ class _Session:
         log_inputs(self.log, inp, core.hover_thrust)
         step = core.step(inp)  # the accelerometer, the time now, the hover estimate: as in a flight
         d = step.decision
-        if step.reset_tracker:
-            reset = getattr(self.perception, "reset", None)
-            if reset is not None:
-                reset()  # the flight resets the tracker here (the passed gate): so does its shadow
+        step.tell_tracker(self.perception)  # as the flight does
         if d.changed:
             self.log.event(f"shadow: {d.previous.value} -> {d.phase.value}: {d.why}")
             if d.previous.value == "ACQUIRE":

@@ -99,6 +99,11 @@ class InjectedPerception:
         if reset is not None:
             reset()
 
+    def refuse(self) -> None:
+        refuse = getattr(self.inner, "refuse", None)
+        if refuse is not None:
+            refuse()
+
 
 class SyntheticScene:
     """Virtual gates in world ENU, anchored at the vehicle pose of the first frame."""

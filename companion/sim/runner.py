@@ -373,8 +373,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                 step = core.step(FrameInput(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, accel_frd=acc,
                                             t_now=t_now, imu=ImuReading(t, acc_frd)))
                 d = step.decision
-                if step.reset_tracker and hasattr(camera, "reset"):
-                    camera.reset()  # the rendered camera's tracker, as the app resets it at RECOVER
+                step.tell_tracker(camera)  # the rendered camera's tracker, as the app's
                 sp, mode = d.setpoint, d.phase.value
                 last_out = d.control if d.control is not None else last_out
                 if d.phase.done:
