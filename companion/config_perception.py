@@ -36,6 +36,13 @@ class PerceptionConfig(Section):
         "for in a crop of the model's input size at full resolution (perception/zoom.py; only when the frame is "
         "larger than the model's input); 0 = off",
     )
+    zoom_track_below: Number = Field(
+        240.0, ge=0.0, le=4096.0,
+        description="px; while tracking, the track's prediction is zoomed on below this (larger side; at least "
+        "zoom_below; zoom_below 0 turns every zoom off): at half size the detector boxes a 100-180 px ring together "
+        "with background beside it (1.3-2.8x the ring on PX4 SIH merge ramps), at full resolution mostly the ring "
+        "alone",
+    )
     zoom_scan: bool | Literal["auto"] = Field(
         "auto", description="while searching with nothing to confirm, also run the detector on one full-resolution "
         "tile of the frame a frame, in turn (a gate too small for the whole frame is found there; zoom_below > 0); "

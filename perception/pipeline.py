@@ -49,11 +49,12 @@ Policy (one state machine, both tracker kinds):
   verification as cut every frame, and held for 15 s while the 39 px gate crossed the view: the search never ran.
   Once the time is up it may acquire again (a gate refused while cut, now in view, is taken back).
 
-* zoomed detection (perception/zoom.py): a target under ``zoom_below`` px (the track's prediction, the candidate
-  being confirmed, or the lost track's last box) is also detected in a crop of the detector's input size at full
-  resolution around it, whose boxes replace the whole frame's boxes of the same objects; searching with nothing
-  small to confirm, one full-resolution tile of the frame a frame (``zoom_scan``; auto = rendered frames only). The
-  detector sees a 640x480 frame at half size: a 39 px ring 25 m away is 20 px to it.
+* zoomed detection (perception/zoom.py): a target under ``zoom_below`` px (the track's prediction, under
+  ``zoom_track_below``; the candidate being confirmed, or the lost track's last box) is also detected in a crop of
+  the detector's input size at full resolution around it, whose boxes replace the whole frame's boxes of the same
+  objects; searching with nothing small to confirm, one full-resolution tile of the frame a frame (``zoom_scan``;
+  auto = rendered frames only). The detector sees a 640x480 frame at half size: a 39 px ring 25 m away is 20 px
+  to it, and a 100-180 px ring merges with background beside it, which it does much less at full resolution.
 
 The output box's ``t`` is the frame's capture time.
 """
@@ -80,7 +81,7 @@ from perception.tracker import (
     touches_border,
 )
 from perception.types import BoundingBox
-from perception.zoom import Crop, merge, scan_crop, zoom_crop
+from perception.zoom import Crop, merge, referee, scan_crop, zoom_crop
 
 if TYPE_CHECKING:
     from companion.config import Config
@@ -258,7 +259,11 @@ class Pipeline:
             return None
         crop = None
         if focus is not None:
-            crop = zoom_crop(focus, self.width, self.height, self.det.input_hw, self.pc.zoom_below)
+            # A track is zoomed on up to a larger size than a search focus: at half size the detector boxes a
+            # 100-180 px ring together with background beside it, and a track that takes such a box grows frame by
+            # frame (PX4 SIH merge ramps); a search keeps zoom_below so a big candidate does not stop the scan.
+            below = max(self.pc.zoom_below, self.pc.zoom_track_below) if self.kf is not None else self.pc.zoom_below
+            crop = zoom_crop(focus, self.width, self.height, self.det.input_hw, below)
         if crop is None and self.kf is None and self.scan:
             crop = scan_crop(self.frame_index, self.width, self.height, self.det.input_hw)
         return crop
@@ -271,7 +276,12 @@ class Pipeline:
         self.stats.detector_runs += 1
         crop = self._zoom(frame, focus)
         if crop is not None:
-            dets = merge(dets, self.det.detect(crop.of(frame), t), crop, self.pc.nms_iou)
+            zoomed = self.det.detect(crop.of(frame), t)
+            if self.kf is not None and focus is not None and max(focus.w, focus.h) >= self.pc.zoom_below:
+                # a track zoomed on for merges only (zoom_track_below): the crop referees the frame's box
+                dets = referee(dets, zoomed, crop, self.pc.nms_iou, focus)
+            else:
+                dets = merge(dets, zoomed, crop, self.pc.nms_iou)
             ms += self.det.last_ms
             self.stats.zoom_runs += 1
         self.stats.detector_ms.append(ms)
