@@ -25,6 +25,9 @@ What each frame is made of, from the log alone:
 A box is on the gate when its centre lies inside the true box grown by ``margin`` px on every side (engagetally's
 rule with a tolerance for the reconstruction; docs/verification-px4.md says how the default was chosen). Such a box
 more than twice the true box's size is also counted apart as *oversize* (engagetally's ``*_oversize``).
+Frames within ``NEAR_RADII`` gate radii of the gate are not judged (the log's pose cannot place the box there), so
+a pass claimed on one is engagetally's ``passes_claimed_unlabelled``: here that means *claimed at the gate*, not
+elsewhere (on the 2026-12-07 SIH table 83 of 99 claims; ``passes_claimed_wrong`` judges the other 16).
 """
 
 from __future__ import annotations
