@@ -226,7 +226,7 @@ class Engagement:
     verifier: TargetVerifier | None = None  # is a box the configured target (companion/verify.py); None = no check
     _unverified: bool = False  # the last box failed verification (one event per spell)
     _rejected_now: bool = False  # this frame's box was rejected (verification or lock): a box is in view
-    _why: str = ""  # why verification rejected this frame's box
+    _refused_as_target: bool = False  # this frame's box failed verification's own rules (not the lock's one-object)
     refused: int = 0  # ENGAGE frames in a row whose box was refused (verification or lock); frames without a box pass
     drop_tracker: bool = False  # this step: the tracker holds another object (drop_tracker_after refusals): drop it
     # ACQUIRE frames in a row whose candidate verification refused as not the target (its own rules, not the lock's
@@ -279,7 +279,7 @@ class Engagement:
             box = whole if whole.is_valid(p.width, p.height) else box
         lock_event = ""
         self._rejected_now = False
-        self._why = ""
+        self._refused_as_target = False
         if valid and self.verifier is not None and self.phase in (Phase.ACQUIRE, Phase.ENGAGE):
             assert box is not None
             why = self._verify(self.verifier, t, box, q_wxyz_ned_frd)
@@ -287,7 +287,7 @@ class Engagement:
                 if not self._unverified:
                     lock_event = (f"gate {self.passes[-1].gate}: box rejected, {why}" if self.phase is Phase.ENGAGE
                                   else f"candidate rejected, {why}")
-                valid, box, self._rejected_now, self._why = False, None, True, why
+                valid, box, self._rejected_now = False, None, True
             self._unverified = bool(why)
         if valid and self.phase is Phase.ENGAGE and self.lock is not None:
             assert box is not None
@@ -311,7 +311,7 @@ class Engagement:
         # A candidate refused by verification is refused again next frame while the tracker holds it: on real PX4
         # (x500, 2026-12-07, run091) a 330 px box cut by the border was held for 15 s while the gate crossed the
         # view. Told, the tracker looks past it for a while (perception's refuse_time).
-        if self.phase is Phase.ACQUIRE and self._rejected_now and not self._why.startswith("not one object"):
+        if self.phase is Phase.ACQUIRE and self._refused_as_target:
             self.refused_candidate += 1
         elif valid or self.phase is not Phase.ACQUIRE:
             self.refused_candidate = 0
@@ -505,6 +505,7 @@ class Engagement:
             verifier.begin(box)  # a new candidate: its appearance is the reference
         why = verifier.check(box, acquiring)
         if why:
+            self._refused_as_target = True
             return why
         if acquiring and self.lock is not None:
             if self._streak == 0:

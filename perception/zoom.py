@@ -125,10 +125,10 @@ def referee(full: list[BoundingBox], zoomed: list[BoundingBox], crop: Crop, dup_
     inside = [z for z in map(crop.to_frame, zoomed) if crop.holds(z)]
     out: list[BoundingBox] = []
     seen: set[int] = set()
+    s_exp = _size(expected)
     for b in full:
         dups = [i for i, z in enumerate(inside) if same_object(b, z, dup_iou)]
         seen.update(dups)
-        s_exp = _size(expected)
         merged = [inside[i] for i in dups if _size(b) > merged_ratio * _size(inside[i]) and _within(inside[i], b)
                   and abs(math.log(_size(inside[i]) / s_exp)) < abs(math.log(_size(b) / s_exp))]
         out.append(max(merged, key=lambda z: z.confidence) if merged else b)
