@@ -103,6 +103,11 @@ class PerceptionConfig(Section):
         description="s an object the app refused as not the target (companion/verify.py, at acquisition) is not "
         "acquired again, followed while it stays in view; 0 = the app's refusal only resets the tracker",
     )
+    derotate: bool = Field(
+        True,
+        description="move the held boxes by the camera's own rotation between frames (from the attitude at each "
+        "frame's capture) before predicting them; frames without an attitude (a video alone) are not moved",
+    )
     memory_min_score: Number = Field(
         0.5, ge=0.0, le=1.0,
         description="track score at its last measurement a lost track needs to be remembered (a weak track may "

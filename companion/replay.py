@@ -141,7 +141,7 @@ def replay(
             R = R_from_quat_wxyz(q)
             if rec is not None:
                 rec.add(k, t, frame, q)
-            box = pipe.process(frame, t)
+            box = pipe.process(frame, t, R)  # a level track (no attitude recorded) moves nothing
             co = ctrl.step(t, box, q)
             # No barometer, accelerometer or processing time in a video: the altitude floor is not checked, the
             # closing speed runs on its prior, frames have no age.

@@ -69,7 +69,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from perception.appearance import descriptor
+from perception.derotate import Derotation
 from perception.detector import Detector
+from perception.los import CameraModel
 from perception.tracker import (
     BoxKalman,
     NanoTracker,
@@ -127,6 +129,7 @@ class PipelineStats:
     boxes: int = 0  # frames with an output box
     measured: int = 0  # frames whose box was corrected by a measurement
     coasted: int = 0  # frames whose box is a prediction
+    derotated: int = 0  # frames whose track was moved by the camera's own rotation (perception/derotate.py)
     rejected_jumps: int = 0
     acquisitions: int = 0
     losses: int = 0
@@ -146,7 +149,7 @@ class PipelineStats:
         return {
             "frames": self.frames, "detector_runs": self.detector_runs, "zoom_runs": self.zoom_runs,
             "tracker_runs": self.tracker_runs,
-            "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted,
+            "boxes": self.boxes, "measured": self.measured, "coasted": self.coasted, "derotated": self.derotated,
             "rejected_jumps": self.rejected_jumps, "acquisitions": self.acquisitions, "losses": self.losses,
             "rejected_inconsistent": self.rejected_inconsistent, "switches": self.switches,
             "unconfident": self.unconfident, "held_back": self.held_back, "refusals": self.refusals,
@@ -159,8 +162,11 @@ class Pipeline:
     """``process(frame, t) -> BoundingBox | None`` for one target; ``stats`` counts what happened."""
 
     def __init__(self, detector: Detector, pc: PerceptionConfig, width: int, height: int,
-                 tracker: NanoTracker | None = None, appearance: bool = False, real_frames: bool = False) -> None:
+                 tracker: NanoTracker | None = None, appearance: bool = False, real_frames: bool = False,
+                 camera: CameraModel | None = None) -> None:
         self.det = detector
+        # The camera's own rotation out of the held boxes (perception/derotate.py) when frames come with an attitude.
+        self.derotation = Derotation(camera) if camera is not None and pc.derotate else None
         # The search's tile scan (perception/zoom.py): zoom_scan auto = rendered frames only.
         self.scan = pc.zoom_scan is True or (pc.zoom_scan == "auto" and not real_frames)
         self.appearance = appearance  # attach the box's appearance descriptor (only the appearance rule reads it)
@@ -180,7 +186,7 @@ class Pipeline:
         trk = NanoTracker(pc.nanotrack_backbone, pc.nanotrack_neckhead) if pc.tracker == "nanotrack" else None
         v = cfg.app.verify
         return cls(det, pc, cfg.camera.width, cfg.camera.height, trk, appearance=v.enabled and v.min_similarity > 0,
-                   real_frames=real_frames)
+                   real_frames=real_frames, camera=CameraModel.from_config(cfg.camera))
 
     def reset(self) -> None:
         self.kf: BoxKalman | None = None
@@ -231,13 +237,20 @@ class Pipeline:
     def tracking(self) -> bool:
         return self.kf is not None
 
-    def process(self, frame: np.ndarray, t: float) -> BoundingBox | None:
+    def process(self, frame: np.ndarray, t: float, R_world_body: np.ndarray | None = None) -> BoundingBox | None:
+        """The target's box in ``frame`` captured at ``t``. ``R_world_body``: the body's attitude at capture (FRD ->
+        a fixed world frame, the one the app rotates the box with), to move what the pipeline holds by the camera's
+        own rotation since the previous frame; None (a video without attitude): image-space prediction alone."""
         t0 = time.perf_counter()
         st = self.stats
         st.frames += 1
         self.frame_index += 1
         dt = (t - self.t_prev) if self.t_prev is not None else 0.0
         self.t_prev = t
+        if self.derotation is not None:
+            M = self.derotation.step(R_world_body)
+            if M is not None:
+                self._derotate(M)
         out = self._track(frame, t, dt) if self.kf is not None else self._search(frame, t, dt)
         if out is not None:
             out = self._clip(out)
@@ -247,6 +260,33 @@ class Pipeline:
                 out = replace(out, appearance=descriptor(frame, out))
         st.total_ms.append((time.perf_counter() - t0) * 1e3)
         return out
+
+    def _derotate(self, M: np.ndarray) -> None:
+        """Move every box the pipeline holds (track, candidate, challenger, memory, refused object) by the camera's
+        rotation ``M`` since the previous frame: they are compared with this frame's detections."""
+        d = self.derotation
+        assert d is not None
+
+        def mv(b: BoundingBox) -> BoundingBox:
+            p = d.move(M, b.cx, b.cy)
+            return b if p is None else replace(b, cx=p[0], cy=p[1])
+
+        if self.kf is not None:
+            b = self.kf.box
+            p = d.move(M, b.cx, b.cy)
+            if p is not None:
+                self.kf.shift(p[0] - b.cx, p[1] - b.cy)
+                self.stats.derotated += 1
+        if self.last_box is not None:
+            self.last_box = mv(self.last_box)
+        if self.candidate is not None:
+            self.candidate = mv(self.candidate)
+        if self.challenger is not None:
+            self.challenger.box = mv(self.challenger.box)
+        if self.memory is not None:
+            self.memory = replace(self.memory, box=mv(self.memory.box))
+        if self.refused is not None:
+            self.refused.box = mv(self.refused.box)
 
     # -- states ------------------------------------------------------------------------------
 

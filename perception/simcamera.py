@@ -134,15 +134,17 @@ class RenderedCamera:
 
     def capture(
         self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray, centre: np.ndarray, normal: np.ndarray,
-        radius: float,
+        radius: float, R_world_body: np.ndarray | None = None,
     ) -> BoundingBox | None:
+        """``R_world_body``: the attitude the controller is given for this frame (the estimate, not the truth that
+        draws it), for the pipeline's rotation compensation (perception/derotate.py)."""
         if self.drop_prob > 0.0 and self.rng.random() < self.drop_prob:
             return None  # a dropped frame never reaches the pipeline
         frame, truth = self.render(p_enu, R_enu_flu, centre, normal, radius, t)
         self.last_truth = truth
         if self.keep_frames:
             self.last_frame = frame
-        return self.pipeline.process(frame, t)
+        return self.pipeline.process(frame, t, R_world_body)
 
 
 def geometric_camera_substitute(cfg, **kw):

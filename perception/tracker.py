@@ -157,6 +157,12 @@ class BoxKalman:
         self.kf.errorCovPost = self.kf.errorCovPre.copy()
         return BoundingBox(float(s[0, 0]), float(s[1, 0]), max(float(s[2, 0]), 1.0), max(float(s[3, 0]), 1.0))
 
+    def shift(self, du: float, dv: float) -> None:
+        """Move the centre by (du, dv) px, velocity and uncertainty kept (the camera's own rotation, applied before
+        :meth:`predict`: perception/derotate.py)."""
+        self.kf.statePost[0, 0] += du
+        self.kf.statePost[1, 0] += dv
+
     def correct(self, meas: BoundingBox) -> BoundingBox:
         r, _ = self._noise(max(meas.w, meas.h))
         self.kf.measurementNoiseCov = np.eye(4) * r**2

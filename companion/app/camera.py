@@ -15,6 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from companion.frames import R_from_quat_wxyz
 from perception.plausibility import FrameChecker, FrameFault
 from perception.types import BoundingBox
 
@@ -37,13 +38,16 @@ class CameraSource(Protocol):
 
 
 class Perception(Protocol):
-    def process(self, frame: Frame) -> BoundingBox | None: ...
+    def process(self, frame: Frame, attitude: np.ndarray | None = None) -> BoundingBox | None:
+        """``attitude``: PX4's attitude at the frame's capture (NED/FRD quaternion wxyz), the one the core rotates
+        the box with; None where there is none."""
+        ...
 
 
 class GeometricPerception:
     """The geometric camera's frames already carry the box (the projection is the detector)."""
 
-    def process(self, frame: Frame) -> BoundingBox | None:
+    def process(self, frame: Frame, attitude: np.ndarray | None = None) -> BoundingBox | None:
         return frame.box
 
 
@@ -53,10 +57,11 @@ class PipelinePerception:
     def __init__(self, pipeline: Any) -> None:
         self.pipeline = pipeline
 
-    def process(self, frame: Frame) -> BoundingBox | None:
+    def process(self, frame: Frame, attitude: np.ndarray | None = None) -> BoundingBox | None:
         if frame.image is None:
             return None
-        return self.pipeline.process(frame.image, frame.t)
+        # The pipeline moves its track by the camera's own rotation (perception/derotate.py).
+        return self.pipeline.process(frame.image, frame.t, None if attitude is None else R_from_quat_wxyz(attitude))
 
     def reset(self) -> None:
         """Forget the track (a gate was passed: the next one is a new target, not a jump)."""

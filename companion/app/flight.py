@@ -34,7 +34,7 @@ from companion.app.logrows import log_detection, log_telemetry
 from companion.app.monitors import Monitors
 from companion.app.notify import Notifier
 from companion.app.outcome import GateJudge, verdict
-from companion.app.perframe import frame_input, log_inputs, log_step
+from companion.app.perframe import attitude_at, frame_input, log_inputs, log_step
 from companion.app.safeend import SafeEnds
 from companion.app.states import Reason, State, StateMachine, Transition, VehicleView
 from companion.confirm import ConfirmParams, OperatorConfirm, engage_mode
@@ -353,14 +353,15 @@ class FlightApp(Monitors, SafeEnds):
             self._check_fault()
             frame = await self.camera.read()
             t_avail = self.clock()
-            box = await self._perceive(frame)
+            q = attitude_at(self.link, frame.t)  # one lookup: perception and the core
+            box = await self._perceive(frame, q)
             self._check_fault()
             valid = box is not None and box.is_valid(self.width, self.height)
             self.stats.frames += 1
             log_detection(self.log, frame, box, valid)
             if self._switching_to_offboard():
                 continue  # perceived and logged (the tracker keeps the gate); PX4 does not fly our setpoints yet
-            inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
+            inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail, q)
             if inp is None:
                 raise _Tripped(Abort(Reason.TELEMETRY_INVALID, "no attitude from the autopilot for a frame"))
             if self._confirm is not None:  # app.engage confirm: RC switch or GCS command (companion/confirm.py)
@@ -501,10 +502,10 @@ class FlightApp(Monitors, SafeEnds):
         return f"; {self._verdict}" if reason in (Reason.GATE_MISSED, Reason.PASS_NOT_CONFIRMED,
                                                   Reason.INTERCEPT_IMPACT, Reason.TARGET_MISSED) else ""
 
-    async def _perceive(self, frame: Frame) -> Any:
+    async def _perceive(self, frame: Frame, q: Any) -> Any:
         if self.perception_in_thread:
             # The detector releases the GIL; running it in a thread keeps the monitors responsive.
-            call = asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame)
+            call = asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame, q)
             # A call that never returns (a hung driver or model) must end the flight in every state, not
             # only under the offboard watchdog: in ACQUIRE the loop would otherwise wait forever.
             limit = max(2.0, 4.0 * self.cfg.safety.perception_stall_timeout)
@@ -513,7 +514,7 @@ class FlightApp(Monitors, SafeEnds):
             except TimeoutError:
                 raise _Tripped(Abort(Reason.PERCEPTION_STALL, f"detector call did not return within "
                                      f"{limit:.1f} s")) from None
-        return self.perception.process(frame)
+        return self.perception.process(frame, q)
 
     def _baro_raw(self) -> float | None:
         b = self.link.baro

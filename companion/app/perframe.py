@@ -29,11 +29,11 @@ def attitude_at(vehicle: VehicleTelemetry, t: float) -> np.ndarray | None:
 
 
 def frame_input(t: float, box: Any, vehicle: VehicleTelemetry, baro_rel_alt: float | None,
-                t_now: float) -> FrameInput | None:
-    """The core's input for a frame captured at ``t`` and processed at ``t_now`` (None: no attitude yet).
+                t_now: float, q: np.ndarray | None) -> FrameInput | None:
+    """The core's input for a frame captured at ``t`` and processed at ``t_now`` with ``q`` =
+    :func:`attitude_at` the capture, looked up once for perception and the core (None: no attitude yet).
     The newest accelerometer sample (50 Hz) goes to the controller (closing speed, drag) and to the
     hover-thrust estimate."""
-    q = attitude_at(vehicle, t)
     if q is None:
         return None
     imu = vehicle.imu

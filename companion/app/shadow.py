@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 from companion.app.logrows import log_detection, log_telemetry
-from companion.app.perframe import frame_input, log_inputs, log_step
+from companion.app.perframe import attitude_at, frame_input, log_inputs, log_step
 from companion.confirm import engage_mode
 from companion.core import FlightCore
 
@@ -215,14 +215,15 @@ class _Session:
 
     async def _frame(self, core: FlightCore, frame: Any) -> None:
         t_avail = self.clock()
+        q = attitude_at(self.link, frame.t)  # as the flight: one lookup for perception and the core
         if self.in_thread:
-            box = await asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame)
+            box = await asyncio.get_running_loop().run_in_executor(None, self.perception.process, frame, q)
         else:
-            box = self.perception.process(frame)
+            box = self.perception.process(frame, q)
         self.stats["frames"] += 1
         valid = box is not None and box.is_valid(self.cfg.camera.width, self.cfg.camera.height)
         log_detection(self.log, frame, box, valid)
-        inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail)
+        inp = frame_input(frame.t, box, self.link, self._baro_rel(), t_avail, q)
         if inp is None:
             return  # no attitude yet: nothing to compute from
         log_inputs(self.log, inp, core.hover_thrust)

@@ -91,8 +91,8 @@ class InjectedPerception:
         self.inner = inner
         self.faults = faults
 
-    def process(self, frame: Frame) -> BoundingBox | None:
-        return self.faults.apply(frame.t, self.inner.process(frame))
+    def process(self, frame: Frame, attitude: np.ndarray | None = None) -> BoundingBox | None:
+        return self.faults.apply(frame.t, self.inner.process(frame, attitude))
 
     def reset(self) -> None:
         reset = getattr(self.inner, "reset", None)

@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 from companion.configbase import deep_merge
 from companion.core import FlightCore, FrameInput, ImuReading
 from companion.engagement import Phase
-from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd
+from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd, R_from_quat_wxyz
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.reasons import Reason
 from companion.sim.camera import GeometricCamera, detector_noise, true_camera_config
@@ -257,7 +257,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     gate = scn.gate
     quad = Quadrotor(params, scn.state0)
     make_camera = GeometricCamera
-    if spec.camera == "rendered":
+    rendered = spec.camera == "rendered"
+    if rendered:
         from perception.simcamera import geometric_camera_substitute
 
         make_camera = geometric_camera_substitute(cfg)
@@ -340,7 +341,11 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             outcome = RunOutcome(False, None, None, "timeout")
             break
         R_true = quat_to_matrix(s.q)
-        box = camera.capture(t, s.p, R_true, g, gate.normal, radius)
+        q_est = sensors.attitude_wxyz_ned_frd(s.q)  # its own stream: drawn before the camera or after, the same
+        if rendered:  # the pipeline moves its track by the attitude the controller is given (perception/derotate.py)
+            box = camera.capture(t, s.p, R_true, g, gate.normal, radius, R_world_body=R_from_quat_wxyz(q_est))
+        else:
+            box = camera.capture(t, s.p, R_true, g, gate.normal, radius)
         frames += 1
         if box is not None:
             frames_with_box += 1
@@ -348,7 +353,6 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         elif eng is None and t - last_seen > fov_timeout:
             outcome = RunOutcome(False, None, None, "fov_lost")
             break
-        q_est = sensors.attitude_wxyz_ned_frd(s.q)
         # The controller's contract: the box of the frame captured at t_cap with the attitude at t_cap
         # (the app matches telemetry to the frame time). attitude_at_capture=False instead pairs the
         # late box with the attitude at arrival, which is what a naive pipeline does.

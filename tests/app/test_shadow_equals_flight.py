@@ -133,12 +133,14 @@ class RecordedCamera:
 
 
 class RecordedPerception:
-    """The recorded box of each frame; counts tracker resets."""
+    """The recorded box of each frame; counts tracker resets and keeps the attitude each frame was given."""
 
     def __init__(self) -> None:
         self.resets = 0
+        self.attitudes: list[tuple[float, ...] | None] = []
 
-    def process(self, frame: Frame) -> Any:
+    def process(self, frame: Frame, attitude: Any = None) -> Any:
+        self.attitudes.append(None if attitude is None else tuple(attitude))
         return frame.box
 
     def reset(self) -> None:
@@ -202,6 +204,9 @@ def test_shadow_computes_what_the_flight_sends(tmp_path, overrides):
         assert np.array_equal(sp_f.R_ned_frd, sp_s.R_ned_frd)
     # The rest of the wiring agrees too: the tracker reset at the pass, the confirmed passes.
     assert app.perception.resets == session.perception.resets >= 1
+    # Perception is given the attitude the core rotates with (its track follows the camera's rotation), in both.
+    given = [a for a in app.perception.attitudes if a is not None]
+    assert len(given) >= n and given[:n] == [a for a in session.perception.attitudes if a is not None][:n]
     assert app.stats.gates_passed == session.stats["passes"] == 1
     if cfg.hover.estimate:
         assert app.core.hover_thrust != cfg.airframe.hover_thrust  # the estimate moved, in both

@@ -1,0 +1,56 @@
+"""The camera's own rotation between two frames, taken out of the tracker's image-space state.
+
+The pipeline predicts the target's box in the image with a constant-velocity Kalman filter. When the vehicle
+itself rotates, the whole image moves: a level gate 25 m ahead of a vehicle that pitches from hover to -36 deg in
+0.3 s (PX4 SIH, the first setpoint of an engagement) crosses 240 px of a 640x480 image, 70 px between two frames.
+Its detections then fell outside the prediction's reach, the track coasted on the old pixel while the gate left,
+and the app rotated that stale pixel with the new attitude into a LOS 22 deg below the true one (SIH run060,
+2026-12-07: the engagement dived at it and lost the gate). The attitude at each frame's capture (the one the
+controller rotates the box with) tells how far every pixel moved by rotation alone; moving the held boxes by it
+before predicting leaves the filter only the target's own motion and the vehicle's translation.
+
+``M = R_world_cam(now)^T R_world_cam(before)`` maps a ray of the earlier frame into the current one; a box
+centre moves to the projection of its rotated ray. Sizes are kept (a rotation changes them by the lens's
+off-centre stretch only). A centre whose ray turned behind the camera has no place in the image: ``None``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from perception.los import CameraModel
+
+_MIN_ANGLE = 1e-6  # rad: below, the rotation moves no pixel by more than ~1e-3 px (hover): nothing is moved
+
+
+class Derotation:
+    """Follows the camera's attitude frame to frame; :meth:`step` gives the rotation since the previous frame."""
+
+    def __init__(self, model: CameraModel) -> None:
+        self.model = model
+        self._R_wc_prev: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self._R_wc_prev = None
+
+    def step(self, R_world_body: np.ndarray | None) -> np.ndarray | None:
+        """``M`` (earlier camera -> this camera) for a frame whose body attitude is ``R_world_body`` (body FRD ->
+        any fixed world frame); None without an attitude, for the first one, or for a negligible rotation."""
+        if R_world_body is None:
+            self._R_wc_prev = None
+            return None
+        R_wc = np.asarray(R_world_body, dtype=float) @ self.model.R_body_cam
+        prev, self._R_wc_prev = self._R_wc_prev, R_wc
+        if prev is None:
+            return None
+        M = R_wc.T @ prev
+        # The rotation angle from the trace, clamped against rounding: cos = (tr - 1) / 2.
+        c = max(-1.0, min(1.0, 0.5 * (float(M[0, 0] + M[1, 1] + M[2, 2]) - 1.0)))
+        return None if math.acos(c) < _MIN_ANGLE else M
+
+    def move(self, M: np.ndarray, u: float, v: float) -> tuple[float, float] | None:
+        """Where pixel (u, v) of the earlier frame is in this one, by the rotation ``M`` alone."""
+        r = M @ self.model.ray_cam(u, v)
+        return self.model.project_body(self.model.R_body_cam @ r)
