@@ -23,6 +23,10 @@ import numpy as np
 from perception.los import CameraModel
 
 _MIN_ANGLE = 1e-6  # rad: below, the rotation moves no pixel by more than ~1e-3 px (hover): nothing is moved
+# Faster than any multirotor turns (PX4's MC_*RATE_MAX default to 220 deg/s; racers reach ~1000): an attitude that
+# jumps further between two frames is the estimator's (a yaw reset), not the camera's; moving the track by it would
+# throw the gate out of the prediction. Nothing is moved for such a step.
+MAX_RATE = math.radians(1500.0)  # rad/s
 
 
 class Derotation:
@@ -35,9 +39,10 @@ class Derotation:
     def reset(self) -> None:
         self._R_wc_prev = None
 
-    def step(self, R_world_body: np.ndarray | None) -> np.ndarray | None:
-        """``M`` (earlier camera -> this camera) for a frame whose body attitude is ``R_world_body`` (body FRD ->
-        any fixed world frame); None without an attitude, for the first one, or for a negligible rotation."""
+    def step(self, R_world_body: np.ndarray | None, dt: float) -> np.ndarray | None:
+        """``M`` (earlier camera -> this camera) for a frame ``dt`` s after the previous one whose body attitude is
+        ``R_world_body`` (body FRD -> any fixed world frame); None without an attitude, for the first one, for a
+        negligible rotation, or for one faster than ``MAX_RATE`` (an estimator's jump)."""
         if R_world_body is None:
             self._R_wc_prev = None
             return None
@@ -48,7 +53,8 @@ class Derotation:
         M = R_wc.T @ prev
         # The rotation angle from the trace, clamped against rounding: cos = (tr - 1) / 2.
         c = max(-1.0, min(1.0, 0.5 * (float(M[0, 0] + M[1, 1] + M[2, 2]) - 1.0)))
-        return None if math.acos(c) < _MIN_ANGLE else M
+        angle = math.acos(c)
+        return None if angle < _MIN_ANGLE or angle > MAX_RATE * max(dt, 1e-3) else M
 
     def move(self, M: np.ndarray, u: float, v: float) -> tuple[float, float] | None:
         """Where pixel (u, v) of the earlier frame is in this one, by the rotation ``M`` alone."""

@@ -248,7 +248,7 @@ class Pipeline:
         dt = (t - self.t_prev) if self.t_prev is not None else 0.0
         self.t_prev = t
         if self.derotation is not None:
-            M = self.derotation.step(R_world_body)
+            M = self.derotation.step(R_world_body, dt)
             if M is not None:
                 self._derotate(M)
         out = self._track(frame, t, dt) if self.kf is not None else self._search(frame, t, dt)

@@ -62,8 +62,8 @@ def test_a_pixel_moves_where_the_rotation_takes_its_world_point(dist) -> None:
         R0, R1 = _R(*a), _R(*(a + rng.uniform(-12, 12, 3)))
         p = R0 @ model.R_body_cam @ np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), 1.0]) * 20.0
         px0, px1 = _pixel(model, R0, p), _pixel(model, R1, p)
-        assert d.step(R0) is None  # no earlier frame (after a reset, below)
-        M = d.step(R1)
+        assert d.step(R0, DT) is None  # no earlier frame (after a reset, below)
+        M = d.step(R1, DT)
         d.reset()
         assert M is not None and px0 is not None and px1 is not None
         moved = d.move(M, *px0)
@@ -71,11 +71,14 @@ def test_a_pixel_moves_where_the_rotation_takes_its_world_point(dist) -> None:
         assert math.hypot(moved[0] - px1[0], moved[1] - px1[1]) < 0.05
 
 
-def test_no_attitude_or_no_rotation_moves_nothing() -> None:
+def test_no_attitude_no_rotation_or_an_estimator_jump_moves_nothing() -> None:
     d = Derotation(_camera())
-    assert d.step(None) is None and d.step(_R(-5)) is None  # the first attitude: nothing to compare with
-    assert d.step(_R(-5)) is None  # the same attitude
-    assert d.step(None) is None and d.step(_R(-30)) is None  # an attitude gap: no rotation is invented
+    assert d.step(None, DT) is None and d.step(_R(-5), DT) is None  # the first attitude: nothing to compare with
+    assert d.step(_R(-5), DT) is None  # the same attitude
+    assert d.step(None, DT) is None and d.step(_R(-30), DT) is None  # an attitude gap: no rotation is invented
+    assert d.step(_R(-30, yaw_deg=49.0), DT) is not None  # 49 deg in a frame: 1470 deg/s, still a rotation
+    assert d.step(_R(-30, yaw_deg=100.0), DT) is None  # 51 deg more in a frame: a yaw reset, not the camera
+    assert d.step(_R(-30, yaw_deg=151.0), 2 * DT) is not None  # 51 deg in two frame periods
 
 
 def _pitch_profile() -> list[float]:
