@@ -9,9 +9,10 @@ and the app rotated that stale pixel with the new attitude into a LOS 22 deg bel
 controller rotates the box with) tells how far every pixel moved by rotation alone; moving the held boxes by it
 before predicting leaves the filter only the target's own motion and the vehicle's translation.
 
-``M = R_world_cam(now)^T R_world_cam(before)`` maps a ray of the earlier frame into the current one; a box
-centre moves to the projection of its rotated ray. Sizes are kept (a rotation changes them by the lens's
-off-centre stretch only). A centre whose ray turned behind the camera has no place in the image: ``None``.
+``M = R_world_body(now)^T R_world_body(before)`` maps a body-frame ray of the earlier frame into the current one (the
+camera is fixed on the body); a box centre moves to the projection of its rotated ray. Sizes are kept (a rotation
+changes them by the lens's off-centre stretch only). A centre whose ray turned behind the camera has no place in
+the image: ``None``.
 """
 
 from __future__ import annotations
@@ -34,23 +35,24 @@ class Derotation:
 
     def __init__(self, model: CameraModel) -> None:
         self.model = model
-        self._R_wc_prev: np.ndarray | None = None
+        self._R_prev: np.ndarray | None = None
 
     def reset(self) -> None:
-        self._R_wc_prev = None
+        self._R_prev = None
 
     def step(self, R_world_body: np.ndarray | None, dt: float) -> np.ndarray | None:
-        """``M`` (earlier camera -> this camera) for a frame ``dt`` s after the previous one whose body attitude is
-        ``R_world_body`` (body FRD -> any fixed world frame); None without an attitude, for the first one, for a
-        negligible rotation, or for one faster than ``MAX_RATE`` (an estimator's jump)."""
+        """``M`` (a body-frame direction at the previous frame -> the same direction in this frame's body frame) for a
+        frame ``dt`` s after the previous one whose attitude is ``R_world_body`` (body FRD -> any fixed world frame);
+        None without an attitude, for the first one, for a negligible rotation, or for one faster than ``MAX_RATE``
+        (an estimator's jump). The camera is fixed on the body, so the body's rotation is the camera's."""
         if R_world_body is None:
-            self._R_wc_prev = None
+            self._R_prev = None
             return None
-        R_wc = np.asarray(R_world_body, dtype=float) @ self.model.R_body_cam
-        prev, self._R_wc_prev = self._R_wc_prev, R_wc
+        R = np.asarray(R_world_body, dtype=float)
+        prev, self._R_prev = self._R_prev, R
         if prev is None:
             return None
-        M = R_wc.T @ prev
+        M = R.T @ prev
         # The rotation angle from the trace, clamped against rounding: cos = (tr - 1) / 2.
         c = max(-1.0, min(1.0, 0.5 * (float(M[0, 0] + M[1, 1] + M[2, 2]) - 1.0)))
         angle = math.acos(c)
@@ -58,5 +60,4 @@ class Derotation:
 
     def move(self, M: np.ndarray, u: float, v: float) -> tuple[float, float] | None:
         """Where pixel (u, v) of the earlier frame is in this one, by the rotation ``M`` alone."""
-        r = M @ self.model.ray_cam(u, v)
-        return self.model.project_body(self.model.R_body_cam @ r)
+        return self.model.project_body(M @ self.model.ray_body(u, v))
