@@ -70,6 +70,11 @@ class FrameRow:
     used: BoundingBox | None = None  # the box the engagement used (after the target lock)
     judged: bool = True  # False: too near the gate for the log's pose to place its box (neither right nor wrong)
     refused: bool | None = None  # the app passed its controller no box for this valid one (los.csv "no box")
+    # What the camera drew this frame from (companion/logrender.py draws it again): the vehicle's position NED and
+    # attitude (NED/FRD wxyz) at capture as the log has them, the gate drawn (centre NED, normal NED, radius m;
+    # None: no gate in front). pose None: the log has no position then.
+    pose: tuple[np.ndarray, np.ndarray] | None = None
+    drawn: tuple[np.ndarray, np.ndarray, float] | None = None
 
 
 def truth_box(cfg: Any, p_ned: np.ndarray, q_wxyz: np.ndarray, centre_ned: np.ndarray, normal_ned: np.ndarray,
@@ -153,8 +158,8 @@ def frames_of(flight: Flight, cfg: Any) -> list[FrameRow]:
         t_next = float(det_t[i + 1]) if i + 1 < len(det) else math.inf
         events = tuple(x for te, x in zip(ev_t, ev_text, strict=True) if det_t[i] <= te < t_next
                        and (x.endswith(" engaged") or x.endswith(" close") or x.endswith("intercept: pulled up")))
-        truth, judged = None, True
-        q = att.at(tf)
+        truth, judged, drawn = None, True, None
+        q, q_drawn = att.at(tf), draw_att.at(tf)
         # The gate rows this frame's capture wrote (one per gate, just before its detection row): the one drawn.
         last = int(np.searchsorted(gt, det_t[i], side="right"))
         mine = range(max(0, last - n_gates), last)
@@ -169,9 +174,12 @@ def frames_of(flight: Flight, cfg: Any) -> list[FrameRow]:
             # the frame can be judged neither way.
             judged &= bool(np.linalg.norm(p - c) >= NEAR_RADII * radius)
             if vis[j] > 0:
-                truth = truth_box(cfg, p, draw_att.at(tf), c, n, radius, tf)
+                truth = truth_box(cfg, p, q_drawn, c, n, radius, tf)
+                drawn = (c, n, radius)
         refused = refused_at.get(tf) if box is not None else None
-        rows.append(FrameRow(tf, box, phase_at.get(tf, ""), events, truth, q, judged=judged, refused=refused))
+        pose = (p, q_drawn) if np.isfinite(p).all() else None
+        rows.append(FrameRow(tf, box, phase_at.get(tf, ""), events, truth, q, judged=judged, refused=refused,
+                             pose=pose, drawn=drawn))
     return rows
 
 
@@ -219,7 +227,7 @@ def attitude_offset(rows: list[FrameRow], search: float = SEARCH_PX) -> tuple[fl
     attitude, which it did not keep (PX4's heading estimate is a few degrees off for a whole flight). A box
     farther off (clutter) neither counts nor can be pulled onto the gate by more than ``search``."""
     d = [(r.box.cx - r.truth.cx, r.box.cy - r.truth.cy) for r in rows if r.box is not None and r.truth is not None
-         and not EngagementTally._wrong(r.box, _xyxy(r.truth, search))]
+         and not EngagementTally._wrong(r.box, grown(r.truth, search))]
     if len(d) < MIN_SPELL:
         return 0.0, 0.0, len(d)
     m = np.median(np.array(d), axis=0)
@@ -233,7 +241,8 @@ def shift_truth(rows: list[FrameRow], dx: float, dy: float) -> None:
                                   r.truth.t)
 
 
-def _xyxy(b: BoundingBox | None, margin: float) -> np.ndarray:
+def grown(b: BoundingBox | None, margin: float) -> np.ndarray:
+    """The true box grown by ``margin`` px on every side, as engagetally's labelled boxes (none: no rows)."""
     if b is None:
         return np.zeros((0, 4))
     x0, y0, x1, y1 = b.xyxy
@@ -256,7 +265,7 @@ def tally_rows(rows: list[FrameRow], margin: float = MARGIN_PX, min_spell: int =
     closes: list[tuple[float, bool]] = []  # (t, judged wrong) of each pass claim, as the tally judges it
     last: tuple[BoundingBox, np.ndarray | None] | None = None
     for r in rows:
-        gts = _xyxy(r.truth, margin) if r.judged else None
+        gts = grown(r.truth, margin) if r.judged else None
         if r.phase == "ENGAGE" and r.used is not None:
             last = (r.used, gts)
         if any(e.endswith(" close") or e.endswith("intercept: pulled up") for e in r.events):
@@ -265,7 +274,7 @@ def tally_rows(rows: list[FrameRow], margin: float = MARGIN_PX, min_spell: int =
         tally.add(r.phase, r.events, r.used, gts)
         if r.phase == "ENGAGE" and r.used is not None and r.truth is not None and r.judged:
             d = math.hypot(r.used.cx - r.truth.cx, r.used.cy - r.truth.cy)
-            if not tally._wrong(r.used, _xyxy(r.truth, margin)):
+            if not tally._wrong(r.used, grown(r.truth, margin)):
                 ious.append(iou(r.used, r.truth))
                 dists.append(d)
     out = tally.finish()

@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +57,7 @@ class Rerun:
     setpoint_diff: float = 0.0  # largest difference to a logged setpoint on the same frame
     first_diff: float | None = None  # t_frame of the first logged setpoint the rerun does not reproduce
     compared: int = 0  # logged setpoints compared
+    perception: dict[str, Any] | None = None  # --rerender: the boxes on the frames drawn again (logrender.summary)
 
 
 def _num(v: Any) -> float | None:
@@ -162,8 +163,10 @@ def _logged_changes(flight: Flight, shadow: bool) -> list[tuple[float, str]]:
     return out
 
 
-def rerun(folder: str | Path, cfg: Any | None = None) -> Rerun:
-    """Step a fresh core (``cfg``, default: the flight's own config.json) over the flight's frames."""
+def rerun(folder: str | Path, cfg: Any | None = None, rerender: bool = False) -> Rerun:
+    """Step a fresh core (``cfg``, default: the flight's own config.json) over the flight's frames. ``rerender``: a
+    rendered synthetic-camera flight's frames drawn again from its log and perceived again with ``cfg``
+    (companion/logrender.py): the core gets those boxes, not the logged ones."""
     from companion.logclutter import config_of
 
     flight = read_flight(folder)
@@ -185,14 +188,24 @@ def rerun(folder: str | Path, cfg: Any | None = None) -> Rerun:
     core = FlightCore.from_config(cfg, hover_thrust=hover0)
     res = Rerun(Path(flight.folder), exact, logged_changes=_logged_changes(flight, shadow))
     t0, prev = float(flight.meta["t0_monotonic"]), None
+    again = None
+    if rerender:
+        from companion.logrender import Rerendered
+
+        again = Rerendered.of(flight, cfg)
     for inp, hover in inputs:
+        if again is not None:
+            inp = replace(inp, box=again.box(inp.t - t0, inp.q_wxyz_ned_frd))
         if hover is not None and core.phase.value == "ACQUIRE" and abs(hover - core.hover_thrust) > 1e-6:
             # Set by the app before its first setpoint (PX4's hover measured after take-off, app/hovercheck.py);
             # once the core commands, its own estimate rules, also under another config.
             use_hover_thrust(core.controller, hover, cfg.airframe.thrust_to_weight, core.engagement)
             if core.hover_estimator is not None:  # as the app does there: the estimate starts from it
                 core.hover_estimator = HoverThrustEstimator(hover, cfg.hover)
-        d = core.step(inp).decision
+        step = core.step(inp)
+        if again is not None:
+            step.tell_tracker(again.perception)  # as every loop does (drop a refused track, look past a candidate)
+        d = step.decision
         sp = d.setpoint
         tf = inp.t - t0
         res.steps.append(Step(tf, d.phase.value, d.why, None if sp is None else
@@ -205,6 +218,8 @@ def rerun(folder: str | Path, cfg: Any | None = None) -> Rerun:
                 break
             core.restart()
             prev = None
+    if again is not None:
+        res.perception = again.summary()
     _compare(flight, res)
     return res
 
@@ -246,6 +261,10 @@ def report(res: Rerun) -> str:
     # times: the capture time of the frame that made each change (flight-log clock)
     lines.append("  rerun:  " + "; ".join(f"{t:.3f} {p}" + (f" ({w[:70]})" if w else "") for t, p, w in res.changes))
     lines.append("  logged: " + "; ".join(f"{t:.3f} {p}" for t, p in res.logged_changes))
+    if res.perception is not None:
+        from companion.logrender import report_lines
+
+        lines.extend(report_lines(res.perception))
     return "\n".join(lines)
 
 
@@ -268,6 +287,9 @@ def register(lsub: Any) -> None:
     rp.add_argument("folders", nargs="+", help="flight folders, or directories holding them (an eval's output)")
     rp.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="change the flight's config for the rerun (repeatable)")
+    rp.add_argument("--rerender", action="store_true",
+                    help="rendered synthetic-camera flights: draw the frames again from the log's truth and perceive "
+                         "them again (with --set perception.*); the core gets those boxes (companion/logrender.py)")
     rp.set_defaults(func=_cmd)
 
 
@@ -287,7 +309,7 @@ def _cmd(args: argparse.Namespace) -> int:
             except ValueError as e:
                 raise ValueError(f"{folder}/config.json with {' '.join(args.overrides) or 'no change'}: not a config "
                                  f"({str(e).splitlines()[0]})") from None
-            res = rerun(folder, cfg)
+            res = rerun(folder, cfg, rerender=args.rerender)
         except (ValueError, FileNotFoundError, ConfigError, KeyError) as e:
             print(f"companion log rerun: {str(e).splitlines()[0]}", file=sys.stderr)
             rc = 2

@@ -133,6 +133,52 @@ class SyntheticScene:
         return [g.position(t) for g in self.gates]
 
 
+class SyntheticRenderer:
+    """The synthetic camera's picture of a gate from a pose: perception/render.py through the camera as it truly sits
+    on the body (``sim.camera.mount_error``), a world-fixed background, a sensor's noise. The synthetic camera draws
+    every frame with it; ``companion log rerun --rerender`` draws a flight's frames again with it from the log."""
+
+    def __init__(self, cfg: Config, rng: np.random.Generator) -> None:
+        from perception.render import TRAIN_STYLE, PinholeCamera
+        from perception.simcamera import Panorama
+
+        self.cfg = cfg
+        true_cam = true_camera_config(cfg)
+        self.model = CameraModel.from_config(true_cam)
+        self.camera = PinholeCamera.from_config(true_cam)
+        self.rng = rng
+        # The background is fixed in the world, as the in-process rendered camera's: its clutter moves in the image
+        # as the vehicle turns. An image-fixed background (before) turned a false detection into a box that stayed
+        # put however the vehicle rotated, a phantom PN chased into the ground (PX4 Table I, x500, stationary gate).
+        self.panorama = Panorama(self.model, np.random.default_rng(cfg.sim.seed), TRAIN_STYLE)
+        self._noise: list[np.ndarray] | None = None
+        self._noise_k = 0
+
+    def draw(self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray,
+             gate: tuple[np.ndarray, np.ndarray, float] | None) -> tuple[np.ndarray, BoundingBox | None]:
+        """The BGR frame seen at ``t`` from ``p_enu`` with attitude ``R_enu_flu`` (body FLU -> ENU) of ``gate``
+        (centre ENU, normal ENU, radius m; None: the background only), and the gate's true box (None: not in view)."""
+        from perception.render import Gate, render_gate_frame
+
+        R_enu_cam = R_enu_flu @ F_FRD_FLU @ self.model.R_body_cam
+        g = None if gate is None else Gate(gate[0], gate[1], gate[2])
+        image, truth = render_gate_frame(self.camera, R_enu_cam, p_enu, g, style=None, rng=self.rng,
+                                         background=self.panorama.view(R_enu_cam), t=t)
+        return self._sensor_noise(image), truth
+
+    def _sensor_noise(self, image: np.ndarray) -> np.ndarray:
+        """A real sensor's frames are never identical, even of a static view; a clean render of a hovering
+        vehicle's view is. Without noise an empty view would look like a frozen camera to
+        perception/plausibility.py. A few seeded noise frames in turn: cheap, deterministic."""
+        import cv2
+
+        if self._noise is None or self._noise[0].shape != image.shape:
+            rng = np.random.default_rng(self.cfg.sim.seed + 2)
+            self._noise = [rng.normal(0.0, SENSOR_NOISE, image.shape).round().astype(np.int16) for _ in range(4)]
+        self._noise_k = (self._noise_k + 1) % len(self._noise)
+        return cv2.add(image, self._noise[self._noise_k], dtype=cv2.CV_8U)
+
+
 class SyntheticCamera:
     """Paced at the camera rate; each frame renders the scene from the newest pose."""
 
@@ -166,17 +212,12 @@ class SyntheticCamera:
         self.index = 0
         self._next: float | None = None
         self._last_pose_t = -math.inf
-        self._panorama: Any | None = None  # world-fixed background (perception.simcamera.Panorama)
-        if self.render == "image":  # built here, not at the first frame: it takes ~0.4 s
-            from perception.render import TRAIN_STYLE
-            from perception.simcamera import Panorama
-
-            self._panorama = Panorama(self.model, np.random.default_rng(cfg.sim.seed), TRAIN_STYLE)
+        # Built here, not at the first frame: its background takes ~0.4 s. It draws from self.rng, which the scene's
+        # gates also draw from (the same stream as before it was a class of its own).
+        self.renderer = SyntheticRenderer(cfg, self.rng) if self.render == "image" else None
         self.faults = FaultInjector(cfg.app.synthetic.fault, cfg.app.synthetic.fault_after, self.model.width)
         self.closed = False
         self._last: Frame | None = None
-        self._noise: list[np.ndarray] | None = None
-        self._noise_k = 0
 
     def perception(self, pipeline: Any | None = None) -> Perception:
         inner: Perception = GeometricPerception() if self.render == "geometric" else PipelinePerception(pipeline)
@@ -235,39 +276,16 @@ class SyntheticCamera:
             if best is not None:
                 box = self.geo.capture(t, p_enu, R_enu_flu, best[2], best[1].normal, self.scene.radius)
         else:
-            image, truth = self._render(t, p_enu, R_enu_flu, best)
+            assert self.renderer is not None
+            radius = self.scene.radius if self.scene else 1.0
+            image, truth = self.renderer.draw(t, p_enu, R_enu_flu,
+                                              None if best is None else (best[2], best[1].normal, radius))
         if self.on_gate is not None:
             # Every gate, every frame (scoring needs each one's plane crossing); visible = the one drawn.
             for k, g in enumerate(self.scene.gates, 1):
                 in_view = best is not None and g is best[1] and (box is not None or image is not None)
                 self.on_gate(k, g, g.position(ts), self.scene.radius, in_view)
         return Frame(self.index, t, image, box, truth)
-
-    def _render(self, t: float, p_enu: np.ndarray, R_enu_flu: np.ndarray,
-                best: tuple[float, GateMotion, np.ndarray] | None) -> tuple[np.ndarray, BoundingBox | None]:
-        from perception.render import Gate, PinholeCamera, render_gate_frame
-
-        cam = PinholeCamera.from_config(true_camera_config(self.cfg))
-        R_enu_cam = R_enu_flu @ F_FRD_FLU @ self.model.R_body_cam
-        # The background is fixed in the world, as the in-process rendered camera's: its clutter moves in the image
-        # as the vehicle turns. An image-fixed background (before) turned a false detection into a box that stayed
-        # put however the vehicle rotated, a phantom PN chased into the ground (PX4 Table I, x500, stationary gate).
-        gate = None if best is None else Gate(best[2], best[1].normal, self.scene.radius if self.scene else 1.0)
-        image, truth = render_gate_frame(cam, R_enu_cam, p_enu, gate, style=None, rng=self.rng,
-                                         background=self._panorama.view(R_enu_cam), t=t)
-        return self._sensor_noise(image), truth
-
-    def _sensor_noise(self, image: np.ndarray) -> np.ndarray:
-        """A real sensor's frames are never identical, even of a static view; a clean render of a hovering
-        vehicle's view is. Without noise an empty view would look like a frozen camera to
-        perception/plausibility.py. A few seeded noise frames in turn: cheap, deterministic."""
-        import cv2
-
-        if self._noise is None or self._noise[0].shape != image.shape:
-            rng = np.random.default_rng(self.cfg.sim.seed + 2)
-            self._noise = [rng.normal(0.0, SENSOR_NOISE, image.shape).round().astype(np.int16) for _ in range(4)]
-        self._noise_k = (self._noise_k + 1) % len(self._noise)
-        return cv2.add(image, self._noise[self._noise_k], dtype=cv2.CV_8U)
 
     def close(self) -> None:
         self.closed = True

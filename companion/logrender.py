@@ -1,0 +1,134 @@
+"""A synthetic-camera flight's frames drawn again from its log, and perceived again (``companion log rerun
+--rerender``).
+
+Why: a flight log keeps the box perception gave on each frame, not the frame (640x480 at 30 Hz is 27 MB/s). To ask
+of a PX4 SITL flight "would another detector threshold, tracker setting or model have kept the ring, and what would
+the core have decided then?", its frames are drawn again: by the synthetic camera's own renderer
+(companion/app/synthcam.py ``SyntheticRenderer``), from the pose and the gate the log says the camera drew with
+(companion/logclutter.py ``frames_of``: the truth source's position and attitude, the gate row the capture wrote).
+Each frame then goes through a fresh pipeline the way the app hands it one (``PipelinePerception`` with the attitude
+at capture), and the engagement's requests (drop the track, look past a refused candidate) go back to it.
+
+Not the flown pixels: the position is interpolated between the log's truth samples, the attitude slerped, and the
+render's noise is drawn anew (the flight's stream was shared with the scene's set-up). On the test flight
+(tests/app/test_logrender.py) the re-perceived box lies within a few pixels of the logged one on most frames; the
+test says how many.
+
+Open loop, as every rerun: the vehicle flew what the flight's own boxes commanded.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from companion.app.camera import Frame, PipelinePerception
+from companion.app.synthcam import SyntheticRenderer
+from companion.engagetally import on_gate
+from companion.flightlog import Flight
+from companion.frames import R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
+from companion.logclutter import MARGIN_PX, FrameRow, config_of, frames_of, grown
+from perception.types import BoundingBox
+
+MATCH_S = 1e-6  # s: a core input and a logged frame are the same frame (times written with 9 digits)
+
+
+@dataclass
+class PerceivedFrame:
+    t: float  # capture time, flight-log clock
+    logged: BoundingBox | None  # the box the flight's perception gave
+    again: BoundingBox | None  # the box perception gives on the frame drawn again
+    truth: BoundingBox | None  # the gate's true box (None: not in view)
+    judged: bool = True  # False: too near the gate for the log's pose to place a box (logclutter's NEAR_RADII)
+
+
+@dataclass
+class Rerendered:
+    """Perception again, frame by frame, on a rendered synthetic-camera flight's frames drawn again from its log."""
+
+    rows: list[FrameRow]
+    renderer: SyntheticRenderer
+    perception: PipelinePerception
+    t0: float  # the log's clock origin on the monotonic clock (meta.json t0_monotonic)
+    frames: list[PerceivedFrame] = field(default_factory=list)
+    _k: int = 0
+
+    @classmethod
+    def of(cls, flight: Flight, cfg: Any) -> Rerendered:
+        """``flight`` drawn as it was flown (its own config.json: camera mount, scene seed), perceived with ``cfg``."""
+        from perception.pipeline import Pipeline
+
+        flown = config_of(flight)
+        if flown.app.camera != "synthetic" or flown.app.synthetic.render != "image":
+            raise ValueError(f"{flight.folder}: not a rendered synthetic-camera flight (app.camera "
+                             f"{flown.app.camera!r}, app.synthetic.render {flown.app.synthetic.render!r}): its "
+                             "frames cannot be drawn again")
+        rows = frames_of(flight, flown)
+        return cls(rows, SyntheticRenderer(flown, np.random.default_rng(flown.sim.seed)),
+                   PipelinePerception(Pipeline.from_config(cfg)), float(flight.meta["t0_monotonic"]))
+
+    def box(self, tf: float, q_wxyz: np.ndarray) -> BoundingBox | None:
+        """Perception's box on the frame captured at ``tf`` (flight-log clock) with attitude ``q_wxyz`` (NED/FRD, what
+        the core is given); every earlier frame of the log is perceived first, as the app perceived it (also those
+        the core was not stepped on, e.g. during the take-off)."""
+        out = None
+        while self._k < len(self.rows) and self.rows[self._k].t <= tf + MATCH_S:
+            r = self.rows[self._k]
+            self._k += 1
+            same = abs(r.t - tf) <= MATCH_S
+            b = self._perceive(r, q_wxyz if same else r.q)
+            if same:
+                out = b
+        return out
+
+    def _perceive(self, r: FrameRow, q_wxyz: np.ndarray) -> BoundingBox | None:
+        if r.pose is None:
+            self.frames.append(PerceivedFrame(r.t, r.box, None, r.truth, r.judged))
+            return None
+        p_ned, q_drawn = r.pose
+        R_enu_flu = R_enu_flu_from_ned_frd(R_from_quat_wxyz(q_drawn))
+        gate = None if r.drawn is None else (ned_to_enu(r.drawn[0]), ned_to_enu(r.drawn[1]), r.drawn[2])
+        image, _ = self.renderer.draw(r.t, ned_to_enu(p_ned), R_enu_flu, gate)
+        b = self.perception.process(Frame(len(self.frames), self.t0 + r.t, image), q_wxyz)
+        self.frames.append(PerceivedFrame(r.t, r.box, b, r.truth, r.judged))
+        return b
+
+    def summary(self, margin: float = MARGIN_PX) -> dict[str, Any]:
+        """How often each box (the logged one, the one perceived again) lies on the gate (its centre within the true
+        box grown by ``margin`` px, companion/logclutter.py's rule) or off it, on the frames with the gate in view;
+        how many boxes the frames without it have; the on-gate boxes' centre distance to the true box's. Frames
+        within logclutter's NEAR_RADII of the gate are judged neither way (the log's pose cannot place a box there)."""
+        judged = [f for f in self.frames if f.judged]
+        seen = [f for f in judged if f.truth is not None]
+        out: dict[str, Any] = {"frames": len(self.frames), "judged": len(judged), "gate_in_view": len(seen)}
+        for key in ("logged", "again"):
+            on, dist = 0, []
+            for f in seen:
+                b, g = getattr(f, key), f.truth
+                if b is not None and g is not None and on_gate(b, grown(g, margin)):
+                    on += 1
+                    dist.append(math.hypot(b.cx - g.cx, b.cy - g.cy))
+            boxes = sum(getattr(f, key) is not None for f in seen)
+            out[key] = {"boxes": boxes, "on_gate": on, "off_gate": boxes - on,
+                        "boxes_gate_out_of_view": sum(getattr(f, key) is not None for f in judged
+                                                      if f.truth is None),
+                        "centre_px_p50": float(np.percentile(dist, 50)) if dist else None,
+                        "centre_px_p95": float(np.percentile(dist, 95)) if dist else None}
+        return out
+
+
+def report_lines(s: dict[str, Any]) -> list[str]:
+    """The perception part of ``log rerun --rerender``'s report."""
+
+    def one(name: str, d: dict[str, Any]) -> str:
+        px = ("" if d["centre_px_p50"] is None else
+              f", centre to the true box p50 {d['centre_px_p50']:.1f} px, p95 {d['centre_px_p95']:.1f} px")
+        return (f"    {name}: on the gate {d['on_gate']}, off it {d['off_gate']}, a box with the gate out of view "
+                f"{d['boxes_gate_out_of_view']}{px}")
+
+    return [f"  perception on the {s['frames']} frames drawn again ({s['judged']} judged, {s['gate_in_view']} of them "
+            "with the gate in view):",
+            one("logged", s["logged"]), one("again ", s["again"])]
