@@ -14,13 +14,18 @@ render's noise is drawn anew (the flight's stream was shared with the scene's se
 (tests/app/test_logrender.py) the re-perceived box lies within a few pixels of the logged one on most frames; the
 test says how many.
 
-Open loop, as every rerun: the vehicle flew what the flight's own boxes commanded.
+What it reports, for the flight as logged and as perceived again: the boxes on the gate, off it and with the gate out
+of view, and companion/logclutter.py's engagement tally (engagements begun on a wrong box, passes claimed on one)
+of the core's decisions on those boxes.
+
+Open loop, as every rerun: the vehicle flew what the flight's own boxes commanded. So the first decision that differs
+is the answer; what follows it answers "on these frames", not "in that flight".
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -30,7 +35,7 @@ from companion.app.synthcam import SyntheticRenderer
 from companion.engagetally import on_gate
 from companion.flightlog import Flight
 from companion.frames import R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
-from companion.logclutter import MARGIN_PX, FrameRow, config_of, frames_of, grown
+from companion.logclutter import MARGIN_PX, FrameRow, apply_lock, config_of, frames_of, grown, tally_rows
 from perception.types import BoundingBox
 
 MATCH_S = 1e-6  # s: a core input and a logged frame are the same frame (times written with 9 digits)
@@ -43,6 +48,9 @@ class PerceivedFrame:
     again: BoundingBox | None  # the box perception gives on the frame drawn again
     truth: BoundingBox | None  # the gate's true box (None: not in view)
     judged: bool = True  # False: too near the gate for the log's pose to place a box (logclutter's NEAR_RADII)
+    row: FrameRow | None = None  # the log's frame (its phase and events: the flight's decisions)
+    # The rerun's decisions on this frame (None: the core was not stepped on it): phase, events, the box it used.
+    decided: tuple[str, tuple[str, ...], BoundingBox | None] | None = None
 
 
 @dataclass
@@ -53,6 +61,7 @@ class Rerendered:
     renderer: SyntheticRenderer
     perception: PipelinePerception
     t0: float  # the log's clock origin on the monotonic clock (meta.json t0_monotonic)
+    flown: Any  # the flight's own config (how its frames were drawn)
     frames: list[PerceivedFrame] = field(default_factory=list)
     _k: int = 0
 
@@ -68,7 +77,7 @@ class Rerendered:
                              "frames cannot be drawn again")
         rows = frames_of(flight, flown)
         return cls(rows, SyntheticRenderer(flown, np.random.default_rng(flown.sim.seed)),
-                   PipelinePerception(Pipeline.from_config(cfg)), float(flight.meta["t0_monotonic"]))
+                   PipelinePerception(Pipeline.from_config(cfg)), float(flight.meta["t0_monotonic"]), flown)
 
     def box(self, tf: float, q_wxyz: np.ndarray) -> BoundingBox | None:
         """Perception's box on the frame captured at ``tf`` (flight-log clock) with attitude ``q_wxyz`` (NED/FRD, what
@@ -86,15 +95,34 @@ class Rerendered:
 
     def _perceive(self, r: FrameRow, q_wxyz: np.ndarray) -> BoundingBox | None:
         if r.pose is None:
-            self.frames.append(PerceivedFrame(r.t, r.box, None, r.truth, r.judged))
+            self.frames.append(PerceivedFrame(r.t, r.box, None, r.truth, r.judged, r))
             return None
         p_ned, q_drawn = r.pose
         R_enu_flu = R_enu_flu_from_ned_frd(R_from_quat_wxyz(q_drawn))
         gate = None if r.drawn is None else (ned_to_enu(r.drawn[0]), ned_to_enu(r.drawn[1]), r.drawn[2])
         image, _ = self.renderer.draw(r.t, ned_to_enu(p_ned), R_enu_flu, gate)
         b = self.perception.process(Frame(len(self.frames), self.t0 + r.t, image), q_wxyz)
-        self.frames.append(PerceivedFrame(r.t, r.box, b, r.truth, r.judged))
+        self.frames.append(PerceivedFrame(r.t, r.box, b, r.truth, r.judged, r))
         return b
+
+    def decided(self, tf: float, phase: str, events: tuple[str, ...], used: BoundingBox | None) -> None:
+        """What the rerun's core decided on the frame captured at ``tf`` (after ``box`` gave it that frame's box)."""
+        f = self.frames[-1] if self.frames else None
+        if f is not None and abs(f.t - tf) <= MATCH_S:
+            f.decided = (phase, events, used)
+
+    def tallies(self, margin: float = MARGIN_PX) -> tuple[dict[str, Any], dict[str, Any]]:
+        """companion/logclutter.py's engagement tally (begun on a wrong box, passes claimed on one, ...) of the flight
+        as logged and of the rerun on the boxes perceived again, over the same frames."""
+        logged = [f.row for f in self.frames if f.row is not None]
+        apply_lock(logged, self.flown)  # the flight's own refusals (los.csv, or its lock re-run for older logs)
+        again = []
+        for f in self.frames:
+            if f.row is None:
+                continue
+            phase, events, used = f.decided if f.decided is not None else ("", (), None)
+            again.append(replace(f.row, box=f.again, phase=phase, events=events, used=used))
+        return tally_rows(logged, margin), tally_rows(again, margin)
 
     def summary(self, margin: float = MARGIN_PX) -> dict[str, Any]:
         """How often each box (the logged one, the one perceived again) lies on the gate (its centre within the true
@@ -117,6 +145,10 @@ class Rerendered:
                                                       if f.truth is None),
                         "centre_px_p50": float(np.percentile(dist, 50)) if dist else None,
                         "centre_px_p95": float(np.percentile(dist, 95)) if dist else None}
+        keep = ("engagements", "begun_on_wrong", "engaged_frames", "engaged_frames_wrong", "passes_claimed",
+                "passes_claimed_wrong")
+        for key, t in zip(("logged", "again"), self.tallies(margin), strict=True):
+            out[key]["engagements"] = {k: t[k] for k in keep}
         return out
 
 
@@ -129,6 +161,13 @@ def report_lines(s: dict[str, Any]) -> list[str]:
         return (f"    {name}: on the gate {d['on_gate']}, off it {d['off_gate']}, a box with the gate out of view "
                 f"{d['boxes_gate_out_of_view']}{px}")
 
+    def eng(name: str, e: dict[str, Any]) -> str:
+        return (f"    {name}: {e['engagements']} engagement(s), {e['begun_on_wrong']} begun on a wrong box, "
+                f"engaged frames on one {e['engaged_frames_wrong']}/{e['engaged_frames']}, passes claimed on one "
+                f"{e['passes_claimed_wrong']}/{e['passes_claimed']}")
+
     return [f"  perception on the {s['frames']} frames drawn again ({s['judged']} judged, {s['gate_in_view']} of them "
             "with the gate in view):",
-            one("logged", s["logged"]), one("again ", s["again"])]
+            one("logged", s["logged"]), one("again ", s["again"]),
+            "  the engagements against the truth (companion log clutter's tally):",
+            eng("logged", s["logged"]["engagements"]), eng("again ", s["again"]["engagements"])]

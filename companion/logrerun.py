@@ -203,9 +203,10 @@ def rerun(folder: str | Path, cfg: Any | None = None, rerender: bool = False) ->
             if core.hover_estimator is not None:  # as the app does there: the estimate starts from it
                 core.hover_estimator = HoverThrustEstimator(hover, cfg.hover)
         step = core.step(inp)
+        d = step.decision
         if again is not None:
             step.tell_tracker(again.perception)  # as every loop does (drop a refused track, look past a candidate)
-        d = step.decision
+            again.decided(inp.t - t0, d.phase.value, d.events, core.engagement.used_box)
         sp = d.setpoint
         tf = inp.t - t0
         res.steps.append(Step(tf, d.phase.value, d.why, None if sp is None else

@@ -7,7 +7,8 @@ the shipped detector, the camera mounted 5 deg off its configured pitch):
 * every frame is drawn from the pose and gate the log says the camera drew with: the renderer's own true gate box is
   companion/logclutter.py's, to a micro-pixel, on every frame with the gate in view;
 * with the flown config the boxes perceived again match the flight's: on the gate on as many frames within a few,
-  none off it, and the core engages on the same frame within a few frames and passes the gate;
+  none off it, and the core engages on the same frame within a few frames and passes the gate; the clutter tally
+  (companion log clutter's) of both: one engagement begun on the gate, no pass claimed on a wrong box;
 * with a detector that finds nothing (``perception.confidence=0.99``) the core never engages: it is given the boxes
   perceived again, not the logged ones;
 * a flight whose frames were not rendered: one line naming the flight, exit 2.
@@ -108,6 +109,10 @@ def test_the_flown_config_perceives_what_the_flight_did(flight: Path) -> None:
     assert abs(_engaged_at(res.changes) - _engaged_at(res.logged_changes)) <= 3.5 * frame, (res.changes,
                                                                                            res.logged_changes)
     assert "PASS" in [c[1] for c in res.changes], res.changes
+    # companion log clutter's tally of both: one engagement each, begun on the gate, no pass claimed on a wrong box.
+    el, ea = logged["engagements"], again["engagements"]
+    assert el["engagements"] == ea["engagements"] == 1 and el["begun_on_wrong"] == ea["begun_on_wrong"] == 0, s
+    assert ea["engaged_frames"] >= 20 and ea["engaged_frames_wrong"] <= 1 and ea["passes_claimed_wrong"] == 0, s
 
 
 def test_a_detector_that_finds_nothing_never_engages(flight: Path) -> None:
@@ -115,6 +120,8 @@ def test_a_detector_that_finds_nothing_never_engages(flight: Path) -> None:
     assert res.perception is not None and res.perception["again"]["on_gate"] == 0
     assert res.perception["again"]["off_gate"] == 0
     assert [c[1] for c in res.changes] == ["ACQUIRE"], res.changes
+    assert res.perception["again"]["engagements"]["engagements"] == 0
+    assert res.perception["logged"]["engagements"]["engagements"] == 1
     assert "ENGAGE" in [c[1] for c in res.logged_changes]
 
 
@@ -131,6 +138,7 @@ def test_cli_prints_both_perceptions(flight: Path, capsys: pytest.CaptureFixture
     assert _cli("rerun", str(flight), "--rerender", "--set", "perception.confidence=0.3") == 0
     out = capsys.readouterr().out
     assert "perception on the " in out and "    logged: on the gate " in out and "    again : on the gate " in out
+    assert "    again : 1 engagement(s), 0 begun on a wrong box" in out or "    again : 0 engagement(s)" in out, out
 
 
 def test_a_flight_without_rendered_frames_is_one_line_and_exit_2(flight: Path, tmp_path: Path,
