@@ -49,6 +49,11 @@ SETTLE_TIMEOUT = 60.0  # s for PX4 to reach and settle at a start point
 # (measured at rest): a 1.5 m bound failed the first start point of a fresh PX4 now and then (a harness error and
 # a restart). The app anchors its virtual gates at its first frame, so the start needs no more precision.
 SETTLE_RADIUS = 3.0  # m, truth to the start point
+# The same for the heading: PX4 turns to the start yaw in its EKF's heading, which sat 5-6 deg off SIH's truth on one
+# instance (2026-12-07, SIH table, seed 1: 4 of its first 12 start points refused at a 4 deg bound, each a minute's
+# wait, a PX4 restart and a run counted failed if the retry met the same). The scene is anchored at the app's first
+# frame (its gates ahead of the vehicle's heading then), so the start heading needs no precision either.
+SETTLE_YAW = 10.0  # deg, truth's heading to the start yaw
 SUPPORTED = ("table1", "intercept")  # intercept: companion/evaluation/px4intercept.py
 
 
@@ -206,7 +211,7 @@ class _Vehicle:
                                                   1 - 2 * (s.q_wxyz[2] ** 2 + s.q_wxyz[3] ** 2)))
                 last = (s.position_ned, float(np.linalg.norm(s.velocity_ned)), yaw_now)
                 ok = (np.linalg.norm(s.position_ned - p) < SETTLE_RADIUS and last[1] < 0.3
-                      and abs((yaw_now - yaw + 180.0) % 360.0 - 180.0) < 4.0)
+                      and abs((yaw_now - yaw + 180.0) % 360.0 - 180.0) < SETTLE_YAW)
                 since = (since or time.monotonic()) if ok else None
                 if since is not None and time.monotonic() - since > 1.5:
                     break
