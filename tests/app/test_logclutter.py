@@ -16,12 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from flighthelpers import FAST_PX4, make_config, run_flight
+from flighthelpers import fly_rendered
 
 import companion.logclutter as lc
 from companion.config import load_config
 from companion.flightlog import read_flight
-from companion.sim.px4 import SimPX4
 
 MOUNT_PITCH_ERROR = 12.0  # deg: ~70 px where the gate is, more than a far gate's box (~40 px) plus the margin
 
@@ -37,26 +36,14 @@ pytestmark = pytest.mark.skipif(_detector_missing() is not None, reason="the shi
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    tmp = tmp_path_factory.mktemp("clutterlog")
-    # The tool is under test, not the flight: a rendered flight (real time, real detector) once engaged for only
-    # 4 frames in ~8 flights here, once missed the ring by 7 cm; such a flight is flown again (at most twice more),
-    # each on a fresh simulated PX4 (the one that landed is disarming: a second take-off on it was refused).
-    for k in range(3):
-        px4 = SimPX4(load_config([], [f"sim.seed={7 + k}"]), px4_params=FAST_PX4)
-        px4.start()
-        try:
-            cfg = make_config(tmp / f"try{k}", px4.url_for_mavsdk, "app.synthetic.render=image",
-                              "app.synthetic.motion=linear_slow", f"sim.camera.mount_error.pitch={MOUNT_PITCH_ERROR}")
-            _, folder, summary = run_flight(cfg)
-        finally:
-            px4.stop()
+    def good(folder: Path, summary: dict) -> bool:
         f = read_flight(folder)
         engaged, frames = int((f["setpoints"]["state"] == "ENGAGE").sum()), len(f["detections"])
         # Enough frames for the checks below (> 20 with the gate in view): a loaded CI machine delivered a flight of
         # 34 engaged frames, 20 of them with the gate in view.
-        if (summary.get("truth") or {}).get("through") == 1 and engaged >= 40 and frames >= 150:
-            break
-    yield Path(folder)
+        return (summary.get("truth") or {}).get("through") == 1 and engaged >= 40 and frames >= 150
+
+    yield fly_rendered(tmp_path_factory.mktemp("clutterlog"), 7, MOUNT_PITCH_ERROR, good)
 
 
 WRONG = {"mount_error_ignored": ("true_camera_config", lambda cfg: cfg.camera),  # the configured mount

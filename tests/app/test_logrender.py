@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from flighthelpers import FAST_PX4, make_config, run_flight
+from flighthelpers import fly_rendered
 
 from companion.config import Config, load_config
 from companion.configbase import deep_merge, parse_override
@@ -32,7 +32,6 @@ from companion.flightlog import read_flight
 from companion.frames import R_enu_flu_from_ned_frd, R_from_quat_wxyz, ned_to_enu
 from companion.logrender import Rerendered
 from companion.logrerun import rerun
-from companion.sim.px4 import SimPX4
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -47,23 +46,12 @@ def _detector_missing() -> str | None:
 def flight(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     if _detector_missing() is not None:
         pytest.skip("the shipped gate detector is not available")
-    tmp = tmp_path_factory.mktemp("renderlog")
-    # The tool is under test, not the flight: a flight that engaged too briefly is flown again (on a fresh simulated
-    # PX4: the one that landed is disarming), at most twice more.
-    for k in range(3):
-        px4 = SimPX4(load_config([], [f"sim.seed={11 + k}"]), px4_params=FAST_PX4)
-        px4.start()
-        try:
-            cfg = make_config(tmp / f"try{k}", px4.url_for_mavsdk, "app.synthetic.render=image",
-                              "app.synthetic.motion=linear_slow", "sim.camera.mount_error.pitch=5")
-            _, folder, _ = run_flight(cfg)
-        finally:
-            px4.stop()
+
+    def good(folder: Path, summary: dict) -> bool:
         f = read_flight(folder)
-        states = [s["to_state"] for s in f.states]
-        if "PASS" in states and int((f["setpoints"]["state"] == "ENGAGE").sum()) >= 30:
-            break
-    yield Path(folder)
+        return "PASS" in [s["to_state"] for s in f.states] and int((f["setpoints"]["state"] == "ENGAGE").sum()) >= 30
+
+    yield fly_rendered(tmp_path_factory.mktemp("renderlog"), 11, 5.0, good)
 
 
 def _cfg(folder: Path, *overrides: str) -> Config:
