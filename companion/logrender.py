@@ -43,14 +43,14 @@ MATCH_S = 1e-6  # s: a core input and a logged frame are the same frame (times w
 
 @dataclass
 class PerceivedFrame:
-    t: float  # capture time, flight-log clock
-    logged: BoundingBox | None  # the box the flight's perception gave
+    row: FrameRow  # the log's frame: its time, the box the flight's perception gave, the truth, its phase and events
     again: BoundingBox | None  # the box perception gives on the frame drawn again
-    truth: BoundingBox | None  # the gate's true box (None: not in view)
-    judged: bool = True  # False: too near the gate for the log's pose to place a box (logclutter's NEAR_RADII)
-    row: FrameRow | None = None  # the log's frame (its phase and events: the flight's decisions)
     # The rerun's decisions on this frame (None: the core was not stepped on it): phase, events, the box it used.
     decided: tuple[str, tuple[str, ...], BoundingBox | None] | None = None
+
+    def box(self, which: str) -> BoundingBox | None:
+        """``logged`` (the flight's) or ``again``."""
+        return self.row.box if which == "logged" else self.again
 
 
 @dataclass
@@ -95,31 +95,29 @@ class Rerendered:
 
     def _perceive(self, r: FrameRow, q_wxyz: np.ndarray) -> BoundingBox | None:
         if r.pose is None:
-            self.frames.append(PerceivedFrame(r.t, r.box, None, r.truth, r.judged, r))
+            self.frames.append(PerceivedFrame(r, None))
             return None
         p_ned, q_drawn = r.pose
         R_enu_flu = R_enu_flu_from_ned_frd(R_from_quat_wxyz(q_drawn))
         gate = None if r.drawn is None else (ned_to_enu(r.drawn[0]), ned_to_enu(r.drawn[1]), r.drawn[2])
         image, _ = self.renderer.draw(r.t, ned_to_enu(p_ned), R_enu_flu, gate)
         b = self.perception.process(Frame(len(self.frames), self.t0 + r.t, image), q_wxyz)
-        self.frames.append(PerceivedFrame(r.t, r.box, b, r.truth, r.judged, r))
+        self.frames.append(PerceivedFrame(r, b))
         return b
 
     def decided(self, tf: float, phase: str, events: tuple[str, ...], used: BoundingBox | None) -> None:
         """What the rerun's core decided on the frame captured at ``tf`` (after ``box`` gave it that frame's box)."""
         f = self.frames[-1] if self.frames else None
-        if f is not None and abs(f.t - tf) <= MATCH_S:
+        if f is not None and abs(f.row.t - tf) <= MATCH_S:
             f.decided = (phase, events, used)
 
     def tallies(self, margin: float = MARGIN_PX) -> tuple[dict[str, Any], dict[str, Any]]:
         """companion/logclutter.py's engagement tally (begun on a wrong box, passes claimed on one, ...) of the flight
         as logged and of the rerun on the boxes perceived again, over the same frames."""
-        logged = [f.row for f in self.frames if f.row is not None]
+        logged = [f.row for f in self.frames]
         apply_lock(logged, self.flown)  # the flight's own refusals (los.csv, or its lock re-run for older logs)
         again = []
         for f in self.frames:
-            if f.row is None:
-                continue
             phase, events, used = f.decided if f.decided is not None else ("", (), None)
             again.append(replace(f.row, box=f.again, phase=phase, events=events, used=used))
         return tally_rows(logged, margin), tally_rows(again, margin)
@@ -129,20 +127,20 @@ class Rerendered:
         box grown by ``margin`` px, companion/logclutter.py's rule) or off it, on the frames with the gate in view;
         how many boxes the frames without it have; the on-gate boxes' centre distance to the true box's. Frames
         within logclutter's NEAR_RADII of the gate are judged neither way (the log's pose cannot place a box there)."""
-        judged = [f for f in self.frames if f.judged]
-        seen = [f for f in judged if f.truth is not None]
+        judged = [f for f in self.frames if f.row.judged]
+        seen = [f for f in judged if f.row.truth is not None]
         out: dict[str, Any] = {"frames": len(self.frames), "judged": len(judged), "gate_in_view": len(seen)}
         for key in ("logged", "again"):
             on, dist = 0, []
             for f in seen:
-                b, g = getattr(f, key), f.truth
+                b, g = f.box(key), f.row.truth
                 if b is not None and g is not None and on_gate(b, grown(g, margin)):
                     on += 1
                     dist.append(math.hypot(b.cx - g.cx, b.cy - g.cy))
-            boxes = sum(getattr(f, key) is not None for f in seen)
+            boxes = sum(f.box(key) is not None for f in seen)
             out[key] = {"boxes": boxes, "on_gate": on, "off_gate": boxes - on,
-                        "boxes_gate_out_of_view": sum(getattr(f, key) is not None for f in judged
-                                                      if f.truth is None),
+                        "boxes_gate_out_of_view": sum(f.box(key) is not None for f in judged
+                                                      if f.row.truth is None),
                         "centre_px_p50": float(np.percentile(dist, 50)) if dist else None,
                         "centre_px_p95": float(np.percentile(dist, 95)) if dist else None}
         keep = ("engagements", "begun_on_wrong", "engaged_frames", "engaged_frames_wrong", "passes_claimed",
