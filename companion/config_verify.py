@@ -22,6 +22,18 @@ class VerifyConfig(Section):
     min_acquire_range: Meters = Field(
         0.0, ge=0.0, le=1000.0, description="m; at ACQUIRE a box larger than the gate at this range is not the "
         "gate to engage (0 = no near limit)")
+    growth: bool = Field(
+        True, description="during ENGAGE, a box whose size does not follow our own acceleration towards it as the "
+        "configured ring's must (companion/growthcheck.py) is another object: no box (coast, then TARGET_LOST)")
+    growth_min_push: Meters = Field(
+        4.0, gt=0.0, le=1000.0, description="m; growth: judged once our own acceleration has moved us this far "
+        "along the line of sight")
+    growth_max_push: Meters = Field(
+        10.0, gt=0.0, le=1000.0, description="m; growth: no more judged once our own acceleration has moved us this "
+        "far (later a gate's own motion weighs more than the accelerometer's integral can tell apart)")
+    growth_min_scale: Number = Field(
+        0.3, gt=0.0, lt=1.0, description="growth: the box's range follows our motion by at least this fraction (a "
+        "ring of the configured size: 1; a gate up to 1/this x the configured size passes)")
     size_tolerance: Number = Field(
         0.7, gt=0.0, le=1.0, description="a detector's box may be this factor tighter (or 1/this looser) than "
         "the ring's projection")

@@ -40,6 +40,7 @@ import numpy as np
 
 from companion import guidance
 from companion.frames import R_from_euler_ned_deg, R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu
+from companion.growthcheck import GrowthCheck, GrowthParams
 from companion.guidance import Setpoint
 from companion.limits import CloseDetector, SafetyLimits
 from companion.pullup import PullUpParams, PullUpPlanner, arrest_loss
@@ -237,6 +238,10 @@ class Engagement:
     awaiting: bool = False  # a stable candidate waits for the operator's confirmation (app.engage confirm)
     _confirm: bool | None = None  # this step's confirmation (None: not needed)
     pullup: PullUpPlanner | None = None  # on_close=pull_up: when to pull up and how (companion/pullup.py)
+    # Does the engaged box grow as our own acceleration towards it says the configured ring must
+    # (companion/growthcheck.py); None = no check
+    growth: GrowthCheck | None = None
+    _growth_said: bool = False  # its refusal was logged this engagement
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -249,6 +254,8 @@ class Engagement:
         eng = cls.create(params, controller, cfg.app, cfg.safety, lock)
         if cfg.app.verify.enabled:
             eng.verifier = TargetVerifier(VerifyParams.from_config(cfg))
+            if cfg.app.verify.growth:
+                eng.growth = GrowthCheck(GrowthParams.from_config(cfg), camera_model(cfg.camera))
         if params.on_close == "pull_up":
             eng.pullup = PullUpPlanner(PullUpParams.from_config(cfg, f_max=params.f_max), camera_model(cfg.camera))
         return eng
@@ -299,6 +306,14 @@ class Engagement:
                     lock_event = f"gate {self.passes[-1].gate}: box rejected, {chk.why}"
                 valid, box, self._rejected_now = False, None, True
             self._rejecting = not chk.ok
+        if self.phase is Phase.ENGAGE and self.growth is not None and self._imu[0] is not None:
+            why = self.growth.update(t, box if valid else None, R_from_quat_wxyz(q_wxyz_ned_frd), self._imu[0])
+            if why and valid:
+                # Not the ring its size says: no box from here on (coast, then TARGET_LOST), never a pass.
+                if not self._growth_said:
+                    lock_event = f"gate {self.passes[-1].gate}: box rejected, {why}"
+                    self._growth_said = True
+                valid, box, self._rejected_now = False, None, True
         self._streak = self._streak + 1 if valid else 0
         self.used_box = box if valid else None  # what the decisions below saw (replay judges it against labels)
         engaged = self.phase is Phase.ENGAGE
@@ -376,6 +391,9 @@ class Engagement:
         self.close.reset()
         if self.pullup is not None:
             self.pullup.reset()
+        if self.growth is not None:
+            self.growth.reset()
+            self._growth_said = False
         if self.lock is not None:
             self.lock.reset()
             if box is not None:
