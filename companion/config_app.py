@@ -169,6 +169,14 @@ class AppConfig(Section):
     )
     takeoff_altitude: Meters = Field(10.0, gt=0.5, le=500.0)
     pilot_wait_timeout: Seconds = Field(120.0, gt=0.0, le=3600.0, description="s; start=pilot only")
+    land_rest_tilt: Deg = Field(
+        5.0, gt=0.0, le=45.0, description="deg; before a landing PX4's Hold must hold the vehicle this level for "
+        "land_rest_time (it brakes tilted: Land commanded at speed touched down sliding, companion/app/atrest.py)"
+    )
+    land_rest_time: Seconds = Field(1.0, ge=0.0, le=30.0, description="s level = at rest")
+    land_rest_timeout: Seconds = Field(
+        15.0, ge=0.0, le=300.0, description="s; not at rest by then (steady wind tilts a hover): land anyway"
+    )
     acquire_frames: int = Field(10, ge=1, le=1000, description="valid boxes in a row = stable track")
     acquire_timeout: Seconds = Field(15.0, gt=0.0, le=600.0, description="s; no stable track -> land")
     close_trigger: Literal["ttc", "size", "either"] = Field(

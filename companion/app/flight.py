@@ -486,7 +486,7 @@ class FlightApp(Monitors, SafeEnds):
             if pilot:
                 self.sm.go(State.SAFE_HOLD, "PX4 holds; the pilot lands" + self._verdict_tail(reason), reason)
                 return
-            why = "PX4 holds; landing"
+            why = f"PX4 holds; {await self._at_rest()}"
         elif pilot:
             self.sm.go(State.SAFE_PILOT, why + "; the pilot keeps control", reason)
             return

@@ -13,6 +13,7 @@ import math
 from typing import TYPE_CHECKING, Any
 
 from companion.app import linkerrors as linkmod
+from companion.app.atrest import wait_at_rest
 from companion.app.camera import CameraFailed
 from companion.app.offboard import STALE_DRAIN_S
 from companion.app.states import GROUND_STATES, PILOT_MODES, TRANSITIONS, Reason, State
@@ -32,6 +33,14 @@ class SafeEnds:
     _last_setpoint: float
     _recent_stall: Any  # Monitors (the other mixin)
     _who_changed_mode: Any
+    log: Any
+
+    async def _at_rest(self) -> str:
+        """Until PX4's Hold has stopped the vehicle (companion/app/atrest.py); what happened, also an event."""
+        a = self.cfg.app
+        said = await wait_at_rest(self.link, a.land_rest_tilt, a.land_rest_time, a.land_rest_timeout)
+        self.log.event(f"landing: {said}", "info" if said.startswith("at rest") else "warn")
+        return said
 
     async def _safe_end(self, fault: Abort) -> None:
         """Bring the vehicle to one named state that is TRUE of it: HOLD only when PX4 reports HOLD, landed
@@ -84,7 +93,7 @@ class SafeEnds:
         if self.cfg.safety.land_after_abort and self.link.flight_mode == "HOLD":
             if st is not State.HANDBACK:
                 self.sm.go(State.HANDBACK, d)
-            self.sm.go(State.LAND, d + "; land_after_abort")
+            self.sm.go(State.LAND, f"{d}; land_after_abort; {await self._at_rest()}")
             await self.link.land()
             await self.link.wait_landed_and_disarm()
             self._go_seen(d, r)

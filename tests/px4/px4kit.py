@@ -8,6 +8,7 @@ sets Hold and waits for pre-flight OK between tests, and starts a fresh PX4 when
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import signal
 import subprocess
@@ -15,9 +16,12 @@ import sys
 import time
 from pathlib import Path
 
+from companion.app.atrest import tilt_of
 from companion.config import load_config
 from companion.flightlog import read_table
+from companion.frames import R_from_quat_wxyz
 from companion.px4sitl.launcher import PX4Sitl, PX4SitlError, find_sitl_dir, px4_params
+from companion.px4sitl.truth import SihTruth
 
 REPO = Path(__file__).resolve().parents[2]
 SKIP_REASON = ("no PX4 SITL build: set PX4_SITL_DIR to a folder with bin/px4 and etc/ "
@@ -36,6 +40,19 @@ def instance_range() -> range:
     spec = os.environ.get("COMPANION_PX4_INSTANCES", "0-9")
     a, _, b = spec.partition("-")
     return range(int(a), int(b or a) + 1)
+
+
+MAX_RESTING_TILT_DEG = 2.0  # a fresh instance rests at 0.0; landings at rest measured 0.7 deg (2026-12-07)
+
+
+def resting_tilt(px4: PX4Sitl) -> float:
+    """deg, the vehicle's true tilt (SIH's truth link)."""
+    truth = SihTruth(px4.truth_url, px4.origin)
+    try:
+        q = truth.wait(10.0).q_wxyz
+    finally:
+        truth.close()
+    return math.degrees(tilt_of(R_from_quat_wxyz(q)))
 
 
 class Px4Bench:
@@ -60,12 +77,19 @@ class Px4Bench:
         return self._start()
 
     def ready(self) -> PX4Sitl:
-        """PX4 on the ground, disarmed, in Hold, pre-flight checks passing."""
+        """PX4 on the ground, disarmed, in Hold, pre-flight checks passing, resting level."""
         if self.px4 is None or not self.px4.running:
             return self._start()
         try:
             self.px4.land_and_reset(90.0)
         except PX4SitlError:
+            return self._start()
+        # SIH freezes the vehicle's rotation on its ground: one that came down tilted stays so, and its next
+        # take-off spends the motors on a roll it never makes (2026-12-07: 46 deg after a landing at speed, then
+        # every take-off of that instance stayed at 0 m). Only a fresh PX4 stands level again.
+        tilt = resting_tilt(self.px4)
+        if tilt > MAX_RESTING_TILT_DEG:
+            print(f"PX4 instance {self.px4.instance}: resting {tilt:.1f} deg tilted on SIH's ground; a fresh one")
             return self._start()
         return self.px4
 
