@@ -428,3 +428,40 @@ def test_a_los_jump_onto_a_ring_filling_the_view_keeps_the_range_to_dead_reckon(
     close = next(x for x in decs if x.phase is Phase.PASS and x.changed)
     assert "dead-reckoned" in close.why, close.why
     assert abs(close.t - (20.0 - p.reckon_range) / v) <= 2 * DT, (close.t, (20.0 - p.reckon_range) / v)
+
+
+def test_a_ring_that_filled_the_view_and_never_closed_ends_the_engagement_after_reckon_max():
+    """PX4 SIH (2026-12-07, seed 1 run012, linear fast): the filter closed at 1.3 m/s when the ring's box filled the
+    view; the ring then slid out 1.6 m off while the detector's box stayed a background box of the same size. A miss
+    never reaches the half-radius sphere, so nothing closed, and the engagement steered at that box for 2.6 s, down
+    to the altitude floor. Here: a slow approach (1.5 m/s) until the ring's box is 0.8 of the image height, then
+    background boxes that stay put while the vehicle brakes at 4 m/s^2 (the accelerometer: -4 m/s^2 along body x,
+    level), so the dead-reckoned range stops short of the sphere. The engagement closes one ``reckon_max`` after the
+    last range, not before; without close reckoning it steers on."""
+    v0, a = 1.5, 4.0
+
+    def run(*overrides: str) -> tuple[list, float, Engagement]:
+        cfg = load_config([], list(overrides))
+        eng = Engagement.from_config(cfg, PNController.from_config(cfg))
+        t, d, v, decs, t_fill = 0.0, 6.0, v0, [], math.nan
+        while t < 4.0:
+            s = 2.0 * F / d
+            if math.isnan(t_fill) and s < 0.8 * 480:
+                b, acc = box(s), np.array([0.0, 0.0, -9.80665])  # closing at v0, unaccelerated
+            else:
+                t_fill = t if math.isnan(t_fill) else t_fill
+                b, acc = box(420.0), np.array([-a if v > 0.0 else 0.0, 0.0, -9.80665])
+                v = max(v - a * DT, 0.0)
+            decs.append(eng.step(t, b, LEVEL, 10.0, accel_frd=acc, t_now=t))
+            t, d = t + DT, d - v * DT
+        return decs, t_fill, eng
+
+    decs, t_fill, eng = run()
+    close = next(x for x in decs if x.phase is Phase.PASS and x.changed)
+    assert "passed or missed" in close.why, close.why
+    # the last range came from the frame before the fill (the filling box gives none): closed one frame past
+    # reckon_max after it
+    t_last = t_fill - DT
+    assert t_last + eng.params.reckon_max < close.t <= t_last + eng.params.reckon_max + DT + 1e-9, (close.t, t_last)
+    decs, _, _ = run("app.close_reckoning=false")
+    assert not any(x.phase is Phase.PASS for x in decs) and decs[-1].phase is Phase.ENGAGE
