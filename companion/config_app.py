@@ -186,9 +186,8 @@ class AppConfig(Section):
     close_reckoning: bool = Field(
         True, description="also close when the range the closing-speed filter dead-reckons with the IMU, while the "
         "image gives it no range (the ring fills the view: guidance.closing_max_box), reaches half of "
-        "guidance.gate_radius, once the gate's box was near; and when 1 s has passed without one after the ring "
-        "filled the view (passed or missed); without it a slow vehicle steered at background boxes for up to 1.2 s "
-        "after the crossing, and for 2.6 s after a miss"
+        "guidance.gate_radius, once the gate's box was near; without it a slow vehicle steered at background boxes "
+        "for up to 1.2 s after the crossing"
     )
     size_threshold: Number = Field(
         0.95, gt=0.0, le=2.0, description="box size (larger side) as a fraction of the image width; the default "

@@ -230,11 +230,6 @@ class PNController:
         return est.state[0], est.state[1], est.t_range
 
     @property
-    def closing_filled(self) -> bool:
-        """The ring's box filled the view (closing.py ``max_box``): the range is dead-reckoned until the next target."""
-        return self._closing is not None and self._closing.filled
-
-    @property
     def drag_enu(self) -> np.ndarray | None:
         """The filtered aerodynamic acceleration (world ENU, m/s^2) the accelerometer measured, or None (no
         accelerometer given, or drag_compensation off). The straight pass cancels it."""

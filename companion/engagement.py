@@ -143,7 +143,6 @@ class EngagementParams:
     # Close on the filter's dead-reckoned time-to-contact while the image gives it no range (app.close_reckoning),
     # for at most reckon_max s after its last range: the IMU's drift is not trusted longer.
     reckon_close: bool = False
-    # Past it, a ring that filled the view is passed or missed: the engagement closes (``_reckoned``).
     reckon_max: float = 1.0  # s
     reckon_ttc: float = 0.0  # s: close when the dead-reckoned time-to-contact is at most this...
     # ...to a sphere of this radius about the gate's centre, m (from_config: half the ring's radius). A pass off the
@@ -551,8 +550,7 @@ class Engagement:
         """The time-to-contact the closing-speed filter dead-reckons with the IMU to ``reckon_range`` of the gate's
         centre, when it is at most ``reckon_ttc`` (0: that range reached) while the image gives no range (the ring
         filled the view, or no box) and the gate's box was near when the image last gave a range (at least
-        ``lost_min_size`` of the width in the ``near_window`` before it); or once the ring filled the view
-        more than ``reckon_max`` s after its last range and nothing closed: why, or ""."""
+        ``lost_min_size`` of the width in the ``near_window`` before it): why, or ""."""
         p, c = self.params, self.close
         if not p.reckon_close or p.on_close != "fly_through" or c.trigger not in ("ttc", "either"):
             return ""
@@ -560,24 +558,12 @@ class Engagement:
         if est is None:
             return ""
         d, d_dot, t_range = est
-        if t_range is not None and t - t_range > p.reckon_max and self.controller.closing_filled:
-            # The ring filled the view (within ~2.5 m) and nothing closed while its range could be dead-reckoned:
-            # it is behind or beside us, and the boxes since are something else. On real PX4 (SIH quad, linear
-            # fast, 2026-12-07) a ring slid out of view 1.6 m off while the detector's box stayed on a background
-            # box of its size; the engagement steered at it for 2.6 s, down to the altitude floor. The closes of
-            # that table's 50 flights came at most 0.91 s after the last range. (Closing when the dead-reckoned
-            # range opens was tried first: in process it closed a planar run 0.5 s early, the filter saying
-            # "opening" while the truth closed at 2 m/s.)
-            return (f"the ring filled the view and the image has given no range for {t - t_range:.2f} s (dead-reckoned "
-                    f"{d:.2f} m, {d_dot:+.1f} m/s): passed or missed; no box since is the gate")
-        if t_range is None or not (0.0 < t - t_range <= p.reckon_max):
+        if t_range is None or not (0.0 < t - t_range <= p.reckon_max) or d_dot > -0.5:
             return ""
         # Near when the image last gave a range (the ring came to fill the view): a box seen since then does not
         # make an old range from a small box one to dead-reckon (on real PX4 a far gate lost 0.84 s earlier and a
         # background box near the border closed a pass 4 m beside the gate).
         if c.peak(t_range, p.near_window, until=t_range) < p.lost_min_size:
-            return ""
-        if d_dot > -0.5:
             return ""
         ttc = max(d - p.reckon_range, 0.0) / -d_dot
         if ttc > p.reckon_ttc:

@@ -159,10 +159,6 @@ class _Steering:
         return None if self.kind == "baseline" else self.ctrl.closing_estimate
 
     @property
-    def closing_filled(self) -> bool:
-        return self.kind != "baseline" and self.ctrl.closing_filled
-
-    @property
     def p(self) -> Any:
         """The PN controller's parameters (the core's hover estimate updates them); none for the baseline."""
         if self.kind == "baseline":
