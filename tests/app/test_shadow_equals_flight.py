@@ -100,6 +100,10 @@ class RecordedVehicle:
 
     async def stop_offboard(self, timeout: float | None = None) -> None:
         self.flight_mode, self.offboard_active = "HOLD", False
+        self.attitude = AttitudeSample(np.array([1.0, 0.0, 0.0, 0.0]), self.now, self.now)  # Hold has it level
+
+    def check_link(self) -> None:
+        pass  # a recording's link never drops
 
     async def land(self, timeout: float | None = None) -> None:
         self.flight_mode = "LAND"
