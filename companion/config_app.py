@@ -175,7 +175,7 @@ class AppConfig(Section):
     )
     land_rest_time: Seconds = Field(1.0, ge=0.0, le=30.0, description="s level = at rest")
     land_rest_timeout: Seconds = Field(
-        15.0, ge=0.0, le=300.0, description="s; not at rest by then (steady wind tilts a hover): land anyway"
+        15.0, ge=0.0, le=300.0, description="s; not level by then (steady wind tilts a hover): land anyway"
     )
     acquire_frames: int = Field(10, ge=1, le=1000, description="valid boxes in a row = stable track")
     acquire_timeout: Seconds = Field(15.0, gt=0.0, le=600.0, description="s; no stable track -> land")

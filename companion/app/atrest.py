@@ -52,19 +52,20 @@ class RestWatch:
 
 
 async def wait_at_rest(link: VehicleTelemetry, tilt_max_deg: float, hold_s: float, timeout: float,
-                       clock: Callable[[], float] = time.monotonic, poll: float = 0.05) -> str:
-    """Wait until PX4 holds the vehicle level (see the module's note), at most ``timeout`` s; what happened, for
-    the log. A lost link raises (``link.check_link``), as in every other wait of a flight."""
+                       clock: Callable[[], float] = time.monotonic, poll: float = 0.05) -> tuple[bool, str]:
+    """Wait until PX4 holds the vehicle level (see the module's note), at most ``timeout`` s: (held level, what
+    happened for the log). Level, not "at rest": a draggy airframe drifts on with PX4 holding it nearly level. A lost
+    link raises (``link.check_link``), as in every other wait of a flight."""
     watch = RestWatch(math.radians(tilt_max_deg), hold_s)
     t0 = clock()
     while True:
         a = link.attitude
         now = clock()
         if a is not None and watch.update(now, a.R_ned_frd):
-            return (f"at rest {now - t0:.1f} s after the hand-back (tilt {math.degrees(watch.tilt):.1f} deg, "
-                    f"within {tilt_max_deg:g} deg for {hold_s:g} s)")
+            return True, (f"held level {now - t0:.1f} s after the hand-back (tilt {math.degrees(watch.tilt):.1f} "
+                          f"deg, within {tilt_max_deg:g} deg for {hold_s:g} s)")
         if now - t0 >= timeout:
             seen = "no attitude" if a is None else f"tilt {math.degrees(watch.tilt):.1f} deg"
-            return f"not at rest {timeout:g} s after the hand-back ({seen}); landing anyway"
+            return False, f"not level {timeout:g} s after the hand-back ({seen}); landing anyway"
         link.check_link()
         await asyncio.sleep(poll)

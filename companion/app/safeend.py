@@ -38,8 +38,8 @@ class SafeEnds:
     async def _at_rest(self) -> str:
         """Until PX4's Hold has stopped the vehicle (companion/app/atrest.py); what happened, also an event."""
         a = self.cfg.app
-        said = await wait_at_rest(self.link, a.land_rest_tilt, a.land_rest_time, a.land_rest_timeout)
-        self.log.event(f"landing: {said}", "info" if said.startswith("at rest") else "warn")
+        level, said = await wait_at_rest(self.link, a.land_rest_tilt, a.land_rest_time, a.land_rest_timeout)
+        self.log.event(f"landing: {said}", "info" if level else "warn")
         return said
 
     async def _safe_end(self, fault: Abort) -> None:

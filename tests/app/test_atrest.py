@@ -64,22 +64,24 @@ class _Telemetry:
             raise LinkLost("telemetry lost (test)")
 
 
-def _wait(tel: _Telemetry, timeout: float = 15.0) -> str:
+def _wait(tel: _Telemetry, timeout: float = 15.0) -> tuple[bool, str]:
     return asyncio.run(wait_at_rest(tel, 5.0, 1.0, timeout, clock=tel.clock, poll=0.0))  # type: ignore[arg-type]
 
 
 def test_waits_for_the_brake_to_end() -> None:
     tel = _Telemetry(lambda t: 20.0 if t < 3.0 else 0.5)
-    said = _wait(tel)
-    assert said.startswith("at rest") and 4.0 <= tel.t <= 4.0 + 3 * 0.05, (said, tel.t)  # level from 3 s, 1 s held
+    level, said = _wait(tel)
+    # level from 3 s, held 1 s
+    assert level and said.startswith("held level") and 4.0 <= tel.t <= 4.0 + 3 * 0.05, (said, tel.t)
 
 
 def test_lands_anyway_after_the_timeout_and_says_why() -> None:
     tel = _Telemetry(lambda t: 8.0)  # a steady 8 deg (wind)
-    said = _wait(tel, timeout=5.0)
-    assert said == "not at rest 5 s after the hand-back (tilt 8.0 deg); landing anyway", said
+    level, said = _wait(tel, timeout=5.0)
+    assert not level and said == "not level 5 s after the hand-back (tilt 8.0 deg); landing anyway", said
     assert 5.0 <= tel.t <= 5.1
-    assert "no attitude" in _wait(_Telemetry(lambda t: None), timeout=1.0)
+    assert _wait(_Telemetry(lambda t: None), timeout=1.0) == (False, "not level 1 s after the hand-back (no "
+                                                             "attitude); landing anyway")
 
 
 def test_a_lost_link_is_raised_not_waited_out() -> None:

@@ -47,7 +47,7 @@ def test_a_hand_back_at_speed_lands_at_rest(px4: PX4Sitl, log_dir: Path) -> None
     assert f.summary["outcome"] == "SAFE_LANDED", (rc, f.summary, out)
     t_state = {str(r["to_state"]): float(r["t"]) for r in f.states}
     ev = [str(e) for e in f["events"]["text"]]
-    assert any(e.startswith("landing: at rest") for e in ev), ev
+    assert any(e.startswith("landing: held level") for e in ev), ev
     tr = f["truth"]
     t, h = np.asarray(tr["t"]), -np.asarray(tr["d"])
     vh = np.hypot(np.asarray(tr["vn"]), np.asarray(tr["ve"]))
