@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,6 +23,19 @@ def _spans(flight) -> list[tuple[float, float, str]]:
         out.append((float(r["t"]), t1, str(r["to_state"])))
     return out
 
+
+
+def box_sizes(det: Any, camera: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The valid boxes' larger sides on the image's scale: (t, size) of those within the image's larger side,
+    the times of those beyond it, and that side (px). A projected ring at the pass is thousands of px (a
+    synthetic camera's box is not cut to the image); plotted as is, that one point flattens every other box."""
+    ok = det["valid"] > 0
+    t, size = det["t"][ok], np.maximum(det["w"][ok], det["h"][ok])
+    top = float(max(camera.get("width") or 0, camera.get("height") or 0))
+    if not top > 0.0:
+        top = float(np.nanmax(size, initial=1.0))
+    over = size > top
+    return t[~over], size[~over], t[over], top
 
 def plot_flight(folder: str | Path, output: str | Path | None = None) -> Path:
     import matplotlib
@@ -59,8 +73,11 @@ def plot_flight(folder: str | Path, output: str | Path | None = None) -> Path:
 
     if det is not None and len(det):
         a2 = ax[2].twinx()
-        ok = det["valid"] > 0
-        a2.plot(det["t"][ok], np.maximum(det["w"][ok], det["h"][ok]), "k.", ms=2, label="box size (px)")
+        t_in, size_in, t_over, top = box_sizes(det, f.config.get("camera", {}))
+        a2.plot(t_in, size_in, "k.", ms=2, label="box size (px)")
+        if len(t_over):
+            a2.plot(t_over, np.full(len(t_over), top), "k^", ms=3, label="box beyond the image")
+        a2.set_ylim(0.0, 1.05 * top)
         a2.set_ylabel("box px")
 
     ax[2].set_ylabel("rad/s")
