@@ -21,5 +21,5 @@ def test_boxes_beyond_the_image_are_marked_not_plotted_at_their_size():
 
 def test_without_a_camera_size_the_largest_box_sets_the_scale():
     t_in, size_in, t_over, top = box_sizes(_det([50, 200], [60, 10], [1, 1]), {})
-    assert top == 200.0 and size_in.tolist() == [60.0, 200.0] and len(t_over) == 0
+    assert top == 200.0 and t_in.tolist() == [0.0, 1.0] and size_in.tolist() == [60.0, 200.0] and len(t_over) == 0
 
