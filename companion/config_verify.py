@@ -43,6 +43,13 @@ class VerifyConfig(Section):
     acquire_margin: Number = Field(
         0.02, ge=0.0, le=0.2, description="fraction of the image width: at ACQUIRE a candidate with an edge this near "
         "the border counts as cut (a detector's edges wander by several px between frames; 0: within 3 px only)")
+    rival: bool = Field(
+        True, description="at ACQUIRE, a candidate is not engaged while another object in view (one that passes the "
+        "cut, shape and range rules) is as likely the target: their mean detector confidences over the stable-track "
+        "streak within rival_margin (companion/rival.py); it is looked past so the other is judged alone")
+    rival_margin: Number = Field(
+        0.05, ge=0.0, le=1.0, description="rival: the candidate's mean confidence must exceed the best other "
+        "candidate's by more than this")
     min_similarity: Number = Field(
         0.0, ge=0.0, le=1.0, description="appearance (hue-saturation histogram of the box, Bhattacharyya "
         "coefficient) against the box the track began with; below it is another object (0 = off)")

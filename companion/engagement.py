@@ -45,6 +45,7 @@ from companion.guidance import Setpoint
 from companion.limits import CloseDetector, SafetyLimits
 from companion.pullup import PullUpParams, PullUpPlanner, arrest_loss
 from companion.reasons import Reason
+from companion.rival import RivalWatch
 from companion.targetlock import TargetLock
 from companion.verify import TargetVerifier, VerifyParams
 from perception.fastinit import fast_init
@@ -242,6 +243,10 @@ class Engagement:
     # (companion/growthcheck.py); None = no check
     growth: GrowthCheck | None = None
     _growth_said: bool = False  # its refusal was logged this engagement
+    # Is another candidate in view as likely the target (companion/rival.py)? None = no check. A candidate it
+    # refuses is looked past at once (refuse_candidate), not after drop_tracker_after refusals.
+    rivals: RivalWatch | None = None
+    _rival_refused: bool = False
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -256,6 +261,8 @@ class Engagement:
             eng.verifier = TargetVerifier(VerifyParams.from_config(cfg))
             if cfg.app.verify.growth:
                 eng.growth = GrowthCheck(GrowthParams.from_config(cfg), camera_model(cfg.camera))
+            if cfg.app.verify.rival:
+                eng.rivals = RivalWatch(float(cfg.app.verify.rival_margin), params.acquire_frames)
         if params.on_close == "pull_up":
             eng.pullup = PullUpPlanner(PullUpParams.from_config(cfg, f_max=params.f_max), camera_model(cfg.camera))
         return eng
@@ -287,6 +294,7 @@ class Engagement:
         lock_event = ""
         self._rejected_now = False
         self._refused_as_target = False
+        self._rival_refused = False
         if valid and self.verifier is not None and self.phase in (Phase.ACQUIRE, Phase.ENGAGE):
             assert box is not None
             why = self._verify(self.verifier, t, box, q_wxyz_ned_frd)
@@ -330,8 +338,9 @@ class Engagement:
             self.refused_candidate += 1
         elif valid or self.phase is not Phase.ACQUIRE:
             self.refused_candidate = 0
-        self.refuse_candidate = (self.phase is Phase.ACQUIRE and self._rejected_now and k > 0
-                                 and self.refused_candidate > 0 and self.refused_candidate % k == 0)
+        self.refuse_candidate = self._rival_refused or (self.phase is Phase.ACQUIRE and self._rejected_now and k > 0
+                                                        and self.refused_candidate > 0
+                                                        and self.refused_candidate % k == 0)
         d = self._step(t, box, valid, q_wxyz_ned_frd, baro_rel_alt, events)
         if lock_event:
             d = replace(d, events=(*d.events, lock_event))
@@ -339,8 +348,9 @@ class Engagement:
             d = replace(d, events=(*d.events, f"gate {self.passes[-1].gate}: tracker told to drop its target (its box "
                                                f"refused {self.refused} frames in a row)"))
         if self.refuse_candidate:
-            d = replace(d, events=(*d.events, f"tracker told to look past its candidate (refused "
-                                               f"{self.refused_candidate} frames in a row)"))
+            d = replace(d, events=(*d.events, "tracker told to look past its candidate (" + (
+                "another candidate in view is as likely the target)" if self._rival_refused
+                else f"refused {self.refused_candidate} frames in a row)")))
         return d
 
     def _step(self, t: float, box: BoundingBox | None, valid: bool, q_wxyz_ned_frd: np.ndarray,
@@ -531,6 +541,16 @@ class Engagement:
             chk = self.lock.check(t, box, R_from_quat_wxyz(q))
             if not chk.ok:
                 return f"not one object: {chk.why.removeprefix('not the engaged gate: ')}"
+        if acquiring and self.rivals is not None:
+            if self._streak == 0:
+                self.rivals.reset()
+            r = box.rival  # another object in view that could be the target too
+            why = self.rivals.add(box.confidence, r.confidence if r is not None and verifier.may_be_candidate(r)
+                                  else 0.0)
+            if why:
+                self.rivals.reset()
+                self._rival_refused = True
+                return why
         return ""
 
     def _near(self, t: float, est: object) -> float:
@@ -669,4 +689,5 @@ def complete_clipped_box(box: BoundingBox, width: int, height: int, edge_px: flo
         x0, x1 = (min(x0, x1 - size), x1) if cut_l else (x0, max(x1, x0 + size))
     # The constructor with the other fields passed on: what dataclasses.replace builds, without its generic
     # field walk (a fifth of this function's time; clipped boxes come every frame near the gate).
-    return type(box)((x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0, box.confidence, box.t, box.appearance)
+    return type(box)((x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0, box.confidence, box.t, box.appearance,
+                     box.rival)

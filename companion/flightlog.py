@@ -62,7 +62,9 @@ TOPICS: dict[str, tuple[str, ...]] = {
     # With the simulator's attitude (NED/FRD wxyz) at its own time t_truth where the source has one: the synthetic
     # camera drew with it, and companion/logclutter.py recomputes the gate's true box from it.
     "truth": ("t", "n", "e", "d", "vn", "ve", "vd", "t_truth", "qw", "qx", "qy", "qz"),
-    "detections": ("t", "t_frame", "frame", "cx", "cy", "w", "h", "confidence", "valid"),
+    # rival_*: the frame's most confident other candidate (perception/types.py BoundingBox.rival), empty: none
+    "detections": ("t", "t_frame", "frame", "cx", "cy", "w", "h", "confidence", "valid",
+                   "rival_cx", "rival_cy", "rival_w", "rival_h", "rival_confidence"),
     "los": ("t", "t_frame", "los_n", "los_e", "los_d", "lambda_dot", "a_n", "demand_scale", "rejected"),
     "setpoints": (
         "t", "t_frame", "state", "ctrl_mode", "roll_deg", "pitch_deg", "yaw_deg", "thrust", "latency_ms",

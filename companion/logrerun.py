@@ -78,7 +78,10 @@ def _boxes(flight: Flight) -> dict[float, BoundingBox | None]:
             continue
         vals = [_num(r[k]) for k in ("cx", "cy", "w", "h", "confidence")]
         ok = str(r["valid"]).strip() in ("1", "True", "true", "1.0") and all(v is not None for v in vals)
-        out[tf] = BoundingBox(*vals, t=t0 + tf) if ok else None  # type: ignore[arg-type, misc]
+        # The frame's other candidate (logs before 2026-12-07 have none: the rule never acts on them)
+        rv = [_num(r.get(f"rival_{k}")) for k in ("cx", "cy", "w", "h", "confidence")]
+        rival = BoundingBox(*rv, t=t0 + tf) if all(v is not None for v in rv) else None  # type: ignore[arg-type, misc]
+        out[tf] = BoundingBox(*vals, t=t0 + tf, rival=rival) if ok else None  # type: ignore[arg-type, misc]
     return out
 
 

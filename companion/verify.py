@@ -100,24 +100,10 @@ class TargetVerifier:
 
     def check(self, box: BoundingBox, acquiring: bool) -> str:
         """"" when ``box`` may be the target, else why not (one line)."""
+        no = self._box_rules(box, acquiring)
+        if no is not None:
+            return self._no(*no)
         p = self.p
-        size, small = max(box.w, box.h), min(box.w, box.h)
-        cut = self._cut(box, p.edge_px)
-        if acquiring and not p.acquire_cut and self._cut(box, self.acquire_edge_px()):
-            return self._no("cut", f"box {box.w:.0f}x{box.h:.0f} px at ({box.cx:.0f}, {box.cy:.0f}) is cut by the "
-                                   f"image border (an edge within {self.acquire_edge_px():.0f} px of it): its shape "
-                                   "and size cannot be checked")
-        if not cut and p.max_view_angle > 0.0 and small < math.cos(p.max_view_angle) * size:
-            return self._no("shape", f"box {box.w:.0f}x{box.h:.0f} px: no ring seen within "
-                                     f"{math.degrees(p.max_view_angle):.0f} deg of its axis is that narrow")
-        if p.gate_radius > 0.0:
-            full = 2.0 * p.focal_px * p.gate_radius  # px x m: size x range
-            if not cut and p.max_range > 0.0 and size < p.size_tolerance * full / p.max_range:
-                return self._no("range", f"box {size:.0f} px: the gate would be {full / size:.0f} m away "
-                                         f"(max_range {p.max_range:.0f} m)")
-            if acquiring and p.min_acquire_range > 0.0 and size * p.size_tolerance > full / p.min_acquire_range:
-                return self._no("range", f"box {size:.0f} px: the gate would be {full / size:.1f} m away at "
-                                         f"acquisition (min_acquire_range {p.min_acquire_range:.0f} m)")
         a = getattr(box, "appearance", None)
         if p.min_similarity > 0.0 and a is not None and self._ref_app is not None:
             s = similarity(self._ref_app, a)
@@ -125,6 +111,33 @@ class TargetVerifier:
                 return self._no("appearance", f"appearance similarity {s:.2f} to the track's first box "
                                               f"(< {p.min_similarity:.2f})")
         return ""
+
+    def may_be_candidate(self, box: BoundingBox) -> bool:
+        """Would ``box`` pass the rules of one box at ACQUIRE (cut, shape, range)? For another object in view
+        (companion/rival.py): not counted among the rejections, no appearance reference."""
+        return self._box_rules(box, True) is None
+
+    def _box_rules(self, box: BoundingBox, acquiring: bool) -> tuple[str, str] | None:
+        """The rules that judge one box alone: (rule, why) of the first it fails, None when it passes."""
+        p = self.p
+        size, small = max(box.w, box.h), min(box.w, box.h)
+        cut = self._cut(box, p.edge_px)
+        if acquiring and not p.acquire_cut and self._cut(box, self.acquire_edge_px()):
+            return ("cut", f"box {box.w:.0f}x{box.h:.0f} px at ({box.cx:.0f}, {box.cy:.0f}) is cut by the "
+                                   f"image border (an edge within {self.acquire_edge_px():.0f} px of it): its shape "
+                                   "and size cannot be checked")
+        if not cut and p.max_view_angle > 0.0 and small < math.cos(p.max_view_angle) * size:
+            return ("shape", f"box {box.w:.0f}x{box.h:.0f} px: no ring seen within "
+                             f"{math.degrees(p.max_view_angle):.0f} deg of its axis is that narrow")
+        if p.gate_radius > 0.0:
+            full = 2.0 * p.focal_px * p.gate_radius  # px x m: size x range
+            if not cut and p.max_range > 0.0 and size < p.size_tolerance * full / p.max_range:
+                return ("range", f"box {size:.0f} px: the gate would be {full / size:.0f} m away "
+                                 f"(max_range {p.max_range:.0f} m)")
+            if acquiring and p.min_acquire_range > 0.0 and size * p.size_tolerance > full / p.min_acquire_range:
+                return ("range", f"box {size:.0f} px: the gate would be {full / size:.1f} m away at "
+                                 f"acquisition (min_acquire_range {p.min_acquire_range:.0f} m)")
+        return None
 
     def _no(self, rule: str, why: str) -> str:
         self.rejected[rule] = self.rejected.get(rule, 0) + 1

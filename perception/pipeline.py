@@ -197,6 +197,8 @@ class Pipeline:
         self.frame_index = 0
         self.last_conf = 0.0
         self.last_detections: list[BoundingBox] = []
+        self._others: list[BoundingBox] = []  # this frame's plausible detections other than the one given out
+        self._looked_past: BoundingBox | None = None  # this frame's box of the refused object, if seen
         self.score: TrackScore | None = None
         self.challenger: _Candidate | None = None
         self.memory: _Memory | None = None
@@ -231,6 +233,7 @@ class Pipeline:
         if m is None:
             return dets
         r.box, r.t_seen = m, t
+        self._looked_past = m
         return [d for d in dets if d is not m]
 
     @property
@@ -251,11 +254,15 @@ class Pipeline:
             M = self.derotation.step(R_world_body, dt)
             if M is not None:
                 self._derotate(M)
+        self._others, self._looked_past = [], None
         out = self._track(frame, t, dt) if self.kf is not None else self._search(frame, t, dt)
         if out is not None:
             out = self._clip(out)
         if out is not None:
             st.boxes += 1
+            r = self._rival(out)
+            if r is not None:
+                out = replace(out, rival=r)
             if self.appearance:  # what the box shows, for verification's appearance rule (companion/verify.py)
                 out = replace(out, appearance=descriptor(frame, out))
         st.total_ms.append((time.perf_counter() - t0) * 1e3)
@@ -356,6 +363,7 @@ class Pipeline:
             best = pool[0]
             self.candidate_count = 1
         self.candidate = best
+        self._others = [d for d in dets if d is not best]
         if self.candidate_count < self.pc.confirm_frames and best.confidence < self.pc.acquire_confidence:
             return None
         if not self._may_acquire(best, t):
@@ -420,7 +428,8 @@ class Pipeline:
             meas, rejected = associate(pred, fits, self._jump_px(dt), self.pc.min_iou)
             self.stats.rejected_jumps += rejected
             self.stats.rejected_inconsistent += len(dets) - len(fits)
-            self._follow_challenger([d for d in dets if d is not meas], dt)
+            self._others = [d for d in dets if d is not meas]
+            self._follow_challenger(self._others, dt)
             if meas is not None and self.tracker is not None:
                 self.tracker.init(frame, meas)
         assert self.score is not None
@@ -525,6 +534,18 @@ class Pipeline:
             self.tracker.init(frame, ch.box)
         b = ch.box
         return BoundingBox(b.cx, b.cy, b.w, b.h, b.confidence, t)
+
+    def _rival(self, out: BoundingBox) -> BoundingBox | None:
+        """The most confident other candidate in this frame: a detection (plausible; the refused object too: looked
+        past, it is still there) wholly in view whose centre is more than half a box away from ``out``'s (a second
+        box on the same ring is not another object). None when there is none."""
+        best = None
+        others = self._others if self._looked_past is None else [*self._others, self._looked_past]
+        for d in others:
+            if ((best is None or d.confidence > best.confidence) and not touches_border(d, self.width, self.height)
+                    and math.hypot(d.cx - out.cx, d.cy - out.cy) > 0.5 * max(out.w, out.h, d.w, d.h)):
+                best = d
+        return best
 
     def _clip(self, b: BoundingBox) -> BoundingBox | None:
         """Clip to the image; a box whose centre left the image is no box (the LOS would be invented)."""

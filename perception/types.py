@@ -22,6 +22,10 @@ class BoundingBox:
     # What the box shows (perception/appearance.py: a normalised hue-saturation histogram), for the target
     # verification (companion/verify.py); None where no image was seen (geometric boxes).
     appearance: tuple[float, ...] | None = field(default=None, compare=False, repr=False)
+    # The most confident other candidate the detector saw in the same frame (a plausible box wholly in view, not this
+    # object's; perception/pipeline.py), None when there was none or no detection ran: is another object in view as
+    # likely the target (companion/rival.py)?
+    rival: BoundingBox | None = field(default=None, compare=False, repr=False)
 
     def is_valid(self, width: int, height: int) -> bool:
         """Finite, positive size, centre inside the image: anything else is garbage from a detector."""

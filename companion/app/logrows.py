@@ -47,6 +47,9 @@ def log_detection(log: FlightLog, frame: Frame, box: Any, valid: bool) -> None:
     if box is None:
         log.write("detections", t_frame=t_frame, frame=frame.index, valid=False)
     else:
+        r = box.rival
+        rival = {} if r is None else {"rival_cx": r.cx, "rival_cy": r.cy, "rival_w": r.w, "rival_h": r.h,
+                                      "rival_confidence": r.confidence}
         log.write("detections", t_frame=t_frame, frame=frame.index, cx=box.cx, cy=box.cy, w=box.w,
-                  h=box.h, confidence=box.confidence, valid=valid)
+                  h=box.h, confidence=box.confidence, valid=valid, **rival)
 

@@ -1,0 +1,47 @@
+"""Is another object in view as likely the target as the candidate? Pure, over the stable-track streak at ACQUIRE.
+
+Why: on real PX4 SITL (SIH quad, rendered frames, 2026-12-07) the app began engagements on background boxes while
+the 40 px ring 25 m away was in view and detected in every frame. Of 200 flights (seeds 1 and 3) whose
+acquisitions were perceived again from their logs, 7 engaged a wrong box. In 4 the detector rated the ring higher
+than the box the tracker held, by 0.08-0.17 on the mean over the 10 frames before the engagement: the tracker
+cannot switch to a box of another size (that is what keeps a gate against background). In 2 it rated a clutter
+arc 0.12-0.14 above the ring, which no rule on confidence can undo. In the 193 engagements begun on the ring the
+best other candidate stayed at least 0.25 below it.
+
+Rule: over the last ``frames`` verified frames of one candidate, when the mean of the best other candidate's
+confidence (``BoundingBox.rival``, perception/pipeline.py; 0 in frames without one; one that fails the cut, shape
+or range rules does not count) comes within ``margin`` of the mean of the candidate's own, the candidate is not
+engaged and perception is told to look past it (perception's ``refuse_time``). The other object then becomes the
+candidate. An object looked past still counts as another candidate, so the app engages only a candidate that leads
+every other in view: of two alike it engages neither and stays in ACQUIRE (in the field: the operator's
+confirmation decides, ``app.engage confirm``).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+
+class RivalWatch:
+    """``reset()`` for a new candidate; ``add(confidence, rival)`` every verified frame of it at ACQUIRE."""
+
+    def __init__(self, margin: float, frames: int) -> None:
+        self.margin = margin
+        self.frames = max(1, int(frames))
+        self.reset()
+
+    def reset(self) -> None:
+        self._seen: deque[tuple[float, float]] = deque(maxlen=self.frames)
+
+    def add(self, confidence: float, rival: float) -> str:
+        """"" while the candidate may be engaged; why not once its last ``frames`` frames say another candidate in
+        view is as likely the target."""
+        self._seen.append((confidence, rival))
+        if len(self._seen) < self.frames:
+            return ""
+        own = sum(c for c, _ in self._seen) / len(self._seen)
+        other = sum(r for _, r in self._seen) / len(self._seen)
+        if other < own - self.margin:
+            return ""
+        return (f"another candidate in view is as likely the target (its confidence {other:.2f} against this one's "
+                f"{own:.2f}, means over {len(self._seen)} frames; margin {self.margin:.2f})")
