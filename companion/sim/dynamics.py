@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.frames import R_from_quat_wxyz
+from companion.frames import R_enu_flu_from_ned_frd, R_from_quat_wxyz
 
 G = 9.81  # m/s^2, the paper's |g|
 
@@ -192,7 +192,8 @@ class Quadrotor:
         return self._state
 
     def step(
-        self, dt: float, q_cmd: np.ndarray, thrust_norm: float, wind_enu: np.ndarray | None = None
+        self, dt: float, q_cmd: np.ndarray, thrust_norm: float,
+        wind_enu: np.ndarray | tuple[float, float, float] | None = None,
     ) -> QuadState:
         """Advance by dt seconds holding the command (zero-order hold, as PX4 holds a setpoint)."""
         if not dt > 0.0:
@@ -206,8 +207,11 @@ class Quadrotor:
         qc = (c0 / nrm, c1 / nrm, c2 / nrm, c3 / nrm)
         thr = min(max(float(thrust_norm), 0.0), 1.0)
         f_cmd = min(thr * G / p.hover_thrust, p.f_max)
-        wind = (0.0, 0.0, 0.0) if wind_enu is None else (
-            tuple(wind_enu.tolist()) if type(wind_enu) is np.ndarray else tuple(float(c) for c in wind_enu[:3]))
+        if type(wind_enu) is tuple and len(wind_enu) == 3:  # Wind.step's floats (every frame)
+            wind = wind_enu
+        else:
+            wind = (0.0, 0.0, 0.0) if wind_enu is None else (
+                tuple(wind_enu.tolist()) if type(wind_enu) is np.ndarray else tuple(float(c) for c in wind_enu[:3]))
         coeffs = self._coeffs.get(dt)
         if coeffs is None:
             n = max(1, math.ceil(dt / p.max_step - 1e-9))
@@ -309,8 +313,12 @@ class Quadrotor:
 
     def specific_force_body(self) -> np.ndarray:
         """Accelerometer reading without noise (FLU, m/s^2): R^T (a - g) = (thrust - drag) / m, body."""
+        return np.array(self.specific_force_body_xyz())
+
+    def specific_force_body_xyz(self) -> tuple[float, float, float]:
+        """:meth:`specific_force_body` as three floats (the simulator's per-frame path: no array)."""
         a = self._a
-        return np.array(_rot_inv(self._q, (a[0], a[1], a[2] + G)))
+        return _rot_inv(self._q, (a[0], a[1], a[2] + G))  # type: ignore[return-value]
 
     def acceleration_world(self) -> np.ndarray:
         """True acceleration of the last substep, ENU m/s^2 (for scoring and tests)."""
@@ -330,6 +338,25 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """xyzw quaternion (w >= 0) of a rotation matrix, Shepperd's method (numerically safe branch)."""
     # tolist: the same floats as float() of each element, in one call (every frame).
     (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(R, dtype=float).tolist()
+    return _quat_of(m00, m01, m02, m10, m11, m12, m20, m21, m22)
+
+
+def quat_enu_flu_from_R_ned_frd(R_ned_frd: np.ndarray) -> np.ndarray:
+    """``matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd))`` bit for bit, without the two matrix products (a
+    setpoint every frame). ``P R F`` only moves and negates elements: its products are by 0 and +-1 (exact) and
+    BLAS adds them to a +0, so each element is ``0.0 +`` or ``0.0 -`` one element of R (a zero always comes out
+    +0; tested against the products over 300k matrices with zeros of both signs). A non-finite R (0 * inf in the
+    products) takes the products."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(R_ned_frd, dtype=float).tolist()
+    if not math.isfinite(r00 + r01 + r02 + r10 + r11 + r12 + r20 + r21 + r22):
+        return matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd))
+    return _quat_of(0.0 + r10, 0.0 - r11, 0.0 - r12, 0.0 + r00, 0.0 - r01, 0.0 - r02, 0.0 - r20, 0.0 + r21,
+                    0.0 + r22)
+
+
+def _quat_of(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float, m20: float, m21: float,
+             m22: float) -> np.ndarray:
+    """:func:`matrix_to_quat` of the matrix's elements."""
     tr = m00 + m11 + m22
     if tr >= max(m00, m11, m22):
         r = math.sqrt(1.0 + tr)

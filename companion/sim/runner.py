@@ -29,11 +29,11 @@ from scipy.spatial.transform import Rotation
 from companion.configbase import deep_merge
 from companion.core import FlightCore, FrameInput, ImuReading
 from companion.engagement import Phase
-from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd, R_from_quat_wxyz
+from companion.frames import P_NED_ENU, R_from_quat_wxyz
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.reasons import Reason
 from companion.sim.camera import GeometricCamera, detector_noise, true_camera_config
-from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
+from companion.sim.dynamics import QuadParams, Quadrotor, quat_enu_flu_from_R_ned_frd, quat_to_matrix
 from companion.sim.gates import ALL_MOTIONS, MOTIONS, MotionKind
 from companion.sim.scenario import Scenario, make_scenario
 from companion.sim.scoring import PlaneCrossingScorer, PullUpScorer, RunOutcome
@@ -122,9 +122,6 @@ def with_overrides(cfg: Config, overrides: dict[str, Any]) -> Config:
     from companion.config import Config
 
     return Config.model_validate(deep_merge(cfg.model_dump(), overrides))
-
-
-_FLU_TO_FRD = np.array([1.0, -1.0, -1.0])
 
 
 class _Steering:
@@ -341,7 +338,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             outcome = RunOutcome(False, None, None, "timeout")
             break
         R_true = quat_to_matrix(s.q)
-        q_est = sensors.attitude_wxyz_ned_frd(s.q)  # its own stream: drawn before the camera or after, the same
+        # The attitude estimate and the accelerometer (one draw per frame, recorded or not), from the sensors' own
+        # stream: drawn before the camera or after, the same.
+        q_est, (ax, ay, az) = sensors.frame(s.q, quad.specific_force_body_xyz())
         if rendered:  # the pipeline moves its track by the attitude the controller is given (perception/derotate.py)
             box = camera.capture(t, s.p, R_true, g, gate.normal, radius, R_world_body=R_from_quat_wxyz(q_est))
         else:
@@ -356,8 +355,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         # The controller's contract: the box of the frame captured at t_cap with the attitude at t_cap
         # (the app matches telemetry to the frame time). attitude_at_capture=False instead pairs the
         # late box with the attitude at arrival, which is what a naive pipeline does.
-        imu = sensors.imu(quad.specific_force_body(), s.omega)  # one draw per frame, recorded or not
-        acc_frd = imu.accel * _FLU_TO_FRD  # the accelerometer as PX4 reports it (body FRD)
+        # The accelerometer as PX4 reports it (body FRD): the FLU reading times (1, -1, -1), element by element.
+        acc_frd = np.array((ax, -ay, -az))
         pending.append((t + delay, t, box, q_est, acc_frd))
         if steer.kind != "pn":  # only the ablations that know ground truth read it (gate.velocity: ~1.5 % of a frame)
             steer.truth = (s.p, s.v, g, gate.velocity(t))
@@ -390,7 +389,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                     break
             if sp is None:
                 continue  # ACQUIRE: PX4 holds (here: the cruise trim)
-            q_cmd = matrix_to_quat(R_enu_flu_from_ned_frd(sp.R_ned_frd))
+            q_cmd = quat_enu_flu_from_R_ned_frd(sp.R_ned_frd)
             thrust_cmd = sp.thrust
             sp_t.append(t)
             sp_roll.append(sp.roll_deg)
@@ -411,7 +410,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
             # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
-            traj.accel.append(imu.accel)
+            traj.accel.append(np.array((ax, ay, az)))
             traj.baro.append(sensors.baro_altitude(float(s.p[2]), rng_rec))
         quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
