@@ -132,9 +132,10 @@ class FlightCore:
                     hover_input = (self._hover_u, a_up)
             hover = self._hover_update(inp.imu, d.setpoint.thrust, a_up)
         reset = (d.changed and d.phase is Phase.RECOVER) or self.engagement.drop_tracker
-        return CoreStep(d, reset_tracker=reset, refuse_candidate=self.engagement.refuse_candidate,
-                        passes_confirmed=self.engagement.passes_confirmed, hover=hover,
-                        hover_input=hover_input if hover is not None else None)
+        eng = self.engagement
+        # Positional (the field order of CoreStep): keywords cost a fast_init __init__ a dict per frame.
+        return CoreStep(d, reset, eng.refuse_candidate, eng.passes_confirmed, hover,
+                        hover_input if hover is not None else None)
 
     def _hover_update(self, imu: ImuReading | None, thrust: float, a_up: float | None) -> HoverEstimate | None:
         """hover.estimate: the IMU's specific force against the thrust commanded since the last setpoint; the

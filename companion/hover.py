@@ -131,14 +131,18 @@ def thrust_specific_force(accel_frd: Any, R_ned_frd: Any | None, cfg: HoverConfi
     removes a horizontal drag exactly; NaN (no sample) beyond ``max_tilt``. Else the accelerometer's -z.
     """
     c = cfg or HoverConfig()
-    f = np.asarray(accel_frd, float)
+    # An array of floats is used as it is (asarray's call costs more than the rest of this; every frame).
+    f = accel_frd if type(accel_frd) is np.ndarray and accel_frd.dtype is _F64 else np.asarray(accel_frd, float)
     if not c.drag_correction or R_ned_frd is None:
         return -float(f[2])
-    r = np.asarray(R_ned_frd, float)[2]
-    cos_tilt = float(r[2])
+    r = (R_ned_frd if type(R_ned_frd) is np.ndarray and R_ned_frd.dtype is _F64 else np.asarray(R_ned_frd, float))[2]
+    cos_tilt = r.item(2)  # float(r[2]) without the scalar object
     if not cos_tilt >= _cos_deg(c.max_tilt):
         return math.nan
     return -float(r.dot(f)) / cos_tilt  # .dot: the same BLAS ddot as @, without matmul's dispatch (every frame)
+
+
+_F64 = np.dtype(np.float64)  # the native float64 dtype is a singleton: an identity test
 
 
 @cache
