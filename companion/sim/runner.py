@@ -269,7 +269,10 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         if not isinstance(camera, GeometricCamera):
             raise ValueError(f"run: the rendered camera draws rings only (sim.target.shape {sim.target.shape!r})")
         camera.use_rectangle(tw, th)
+    if type(camera) is GeometricCamera and sim.camera.drop_prob <= 0.0 and camera.detector_noise is None:
+        camera.read_ahead()  # the pixel noise is the camera stream's one reader: its normals a block at a time
     sensors = Sensors(sim.sensors, rng_sens)
+    sensors.read_ahead()  # rng_sens is the sensors' alone (the logged barometer has rng_rec)
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)
     core = FlightCore.from_config(cfg, controller=steer) if engaged else None

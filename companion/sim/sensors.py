@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from companion.sim.draws import NormalReadAhead
 from companion.sim.dynamics import qmul, quat_to_matrix, rotvec_to_matrix
 from perception.fastinit import fast_init
 
@@ -43,16 +44,28 @@ class Sensors:
         self.att_bias = bias.as_matrix()
         self._q_bias = tuple(float(c) for c in bias.as_quat())
         self.baro_bias = float(rng.normal(0.0, cfg.baro_bias))
+        self._ahead: NormalReadAhead | None = None  # read_ahead(): frame() draws from it
+
+    def read_ahead(self, block: int = 288) -> None:
+        """From now on :meth:`frame` takes its normals from blocks drawn ahead (the same values; one numpy call a
+        block, not a frame). Only for a stream nothing else draws from: the other draws here then raise."""
+        self._ahead = NormalReadAhead(self.rng, block)
+
+    def _own_stream(self) -> np.random.Generator:
+        if self._ahead is not None:
+            raise RuntimeError("Sensors: read_ahead() is on; only frame() may draw from the stream")
+        return self.rng
 
     def imu(self, specific_force_flu: np.ndarray, omega_flu: np.ndarray) -> ImuSample:
         c = self.cfg
-        acc = specific_force_flu + self.accel_bias + self.rng.normal(0.0, c.accel_noise, 3)
-        gyr = omega_flu + self.gyro_bias + np.radians(self.rng.normal(0.0, c.gyro_noise, 3))
+        rng = self._own_stream()
+        acc = specific_force_flu + self.accel_bias + rng.normal(0.0, c.accel_noise, 3)
+        gyr = omega_flu + self.gyro_bias + np.radians(rng.normal(0.0, c.gyro_noise, 3))
         return ImuSample(acc, gyr)
 
     def attitude_enu_flu(self, q_true_xyzw: np.ndarray) -> np.ndarray:
         """Estimated body FLU -> world ENU rotation matrix."""
-        noise = rotvec_to_matrix(np.radians(self.rng.normal(0.0, self.cfg.attitude_noise, 3)))
+        noise = rotvec_to_matrix(np.radians(self._own_stream().normal(0.0, self.cfg.attitude_noise, 3)))
         # Error applied in the body frame: R_est = R_true R_bias R_noise.
         return quat_to_matrix(q_true_xyzw) @ self.att_bias @ noise
 
@@ -60,7 +73,7 @@ class Sensors:
         """The estimate as PX4 reports it: scalar-first quaternion, body FRD -> world NED."""
         # Quaternion algebra on floats: this runs every frame (scipy costs ~30 us per call).
         sig = math.radians(self.cfg.attitude_noise)
-        n = (self.rng.normal(0.0, 1.0, 3) * sig).tolist() if sig > 0 else (0.0, 0.0, 0.0)
+        n = (self._own_stream().normal(0.0, 1.0, 3) * sig).tolist() if sig > 0 else (0.0, 0.0, 0.0)
         return self._attitude(q_true_xyzw, n)
 
     def _attitude(self, q_true_xyzw: np.ndarray, n: tuple[float, float, float] | list[float]) -> np.ndarray:
@@ -87,11 +100,13 @@ class Sensors:
         """
         c = self.cfg
         sig = math.radians(c.attitude_noise)
+        k = 9 if sig > 0 else 6  # no attitude noise: no attitude draw (as attitude_wxyz_ned_frd)
+        z = self._ahead.take(k) if self._ahead is not None else self.rng.standard_normal(k).tolist()
         if sig > 0:
-            z0, z1, z2, a0, a1, a2, _, _, _ = self.rng.standard_normal(9).tolist()
+            z0, z1, z2, a0, a1, a2, _, _, _ = z
             n = ((0.0 + z0) * sig, (0.0 + z1) * sig, (0.0 + z2) * sig)
         else:
-            a0, a1, a2, _, _, _ = self.rng.standard_normal(6).tolist()
+            a0, a1, a2, _, _, _ = z
             n = (0.0, 0.0, 0.0)
         q_est = self._attitude(q_true_xyzw, n)
         s = c.accel_noise
@@ -101,7 +116,8 @@ class Sensors:
 
     def baro_altitude(self, z_true: float, rng: np.random.Generator | None = None) -> float:
         """``rng``: another stream for the white noise (the run's bias stays), e.g. for a log only."""
-        return z_true + self.baro_bias + float((self.rng if rng is None else rng).normal(0.0, self.cfg.baro_noise))
+        noise = (self._own_stream() if rng is None else rng).normal(0.0, self.cfg.baro_noise)
+        return z_true + self.baro_bias + float(noise)
 
 
 class Wind:
