@@ -275,7 +275,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     sensors.read_ahead()  # rng_sens is the sensors' alone (the logged barometer has rng_rec)
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)
-    core = FlightCore.from_config(cfg, controller=steer) if engaged else None
+    # The engagement steps the PN controller with the frame's accelerometer and time itself, and every other use of
+    # the wrapper passes straight through for "pn": it gets the controller, without a layer of calls a frame.
+    core = FlightCore.from_config(cfg, controller=steer.ctrl if spec.controller == "pn" else steer) if engaged else None
     eng = core.engagement if core is not None else None
     scorer = PlaneCrossingScorer(gate.normal)
     pulling = eng is not None and cfg.app.on_close == "pull_up"
