@@ -186,9 +186,18 @@ def use_hover_thrust(ctrl: Any, hover_thrust: float, thrust_to_weight: float, en
     p = ctrl.p
     f_max = G * min(thrust_to_weight, 1.0 / hover_thrust)
     f_min = G * p.thrust_min / hover_thrust
-    ctrl.p = _replaced(p, hover_thrust=hover_thrust, guidance=_replaced(p.guidance, f_max=f_max, f_min=f_min))
+    # _replacer's functions called positionally (every frame: _replaced's keyword dict and key tuple cost a tenth
+    # of these three copies); the same objects as _replaced(p, hover_thrust=..., guidance=...) etc.
+    gp = p.guidance
+    ctrl.p = _replacer(type(p), _P_FIELDS)(p, hover_thrust, _replacer(type(gp), _G_FIELDS)(gp, f_max, f_min))
     if engagement is not None:
-        engagement.params = _replaced(engagement.params, hover_thrust=hover_thrust, f_min=f_min, f_max=f_max)
+        ep = engagement.params
+        engagement.params = _replacer(type(ep), _E_FIELDS)(ep, hover_thrust, f_min, f_max)
+
+
+_P_FIELDS = ("hover_thrust", "guidance")  # what use_hover_thrust changes, in the order it passes them
+_G_FIELDS = ("f_max", "f_min")
+_E_FIELDS = ("hover_thrust", "f_min", "f_max")
 
 
 def _replaced(obj: Any, **changes: Any) -> Any:
