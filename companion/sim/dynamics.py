@@ -192,15 +192,21 @@ class Quadrotor:
         return self._state
 
     def step(
-        self, dt: float, q_cmd: np.ndarray, thrust_norm: float,
+        self, dt: float, q_cmd: np.ndarray | tuple[float, float, float, float], thrust_norm: float,
         wind_enu: np.ndarray | tuple[float, float, float] | None = None,
     ) -> QuadState:
-        """Advance by dt seconds holding the command (zero-order hold, as PX4 holds a setpoint)."""
+        """Advance by dt seconds holding the command (zero-order hold, as PX4 holds a setpoint).
+
+        ``q_cmd`` (xyzw) and ``wind_enu`` may be tuples of Python floats (the runner's per-frame values), taken as
+        they are; other sequences are converted element by element."""
         if not dt > 0.0:
             raise ValueError(f"Quadrotor.step: dt must be > 0 (got {dt})")
         p = self.params
         # tolist: the same floats as float() of each element, in one call (every frame)
-        c0, c1, c2, c3 = q_cmd.tolist() if type(q_cmd) is np.ndarray else (float(c) for c in q_cmd[:4])
+        if type(q_cmd) is tuple and len(q_cmd) == 4:  # quat_enu_flu_from_R_ned_frd's floats (every frame)
+            c0, c1, c2, c3 = q_cmd
+        else:
+            c0, c1, c2, c3 = q_cmd.tolist() if type(q_cmd) is np.ndarray else (float(c) for c in q_cmd[:4])
         nrm = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3)
         if not (nrm > 1e-9 and math.isfinite(nrm)):
             raise ValueError(f"Quadrotor.step: q_cmd is not a quaternion (got {q_cmd})")
@@ -338,25 +344,25 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """xyzw quaternion (w >= 0) of a rotation matrix, Shepperd's method (numerically safe branch)."""
     # tolist: the same floats as float() of each element, in one call (every frame).
     (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(R, dtype=float).tolist()
-    return _quat_of(m00, m01, m02, m10, m11, m12, m20, m21, m22)
+    return np.array(_quat_of(m00, m01, m02, m10, m11, m12, m20, m21, m22))
 
 
-def quat_enu_flu_from_R_ned_frd(R_ned_frd: np.ndarray) -> np.ndarray:
-    """``matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd))`` bit for bit, without the two matrix products (a
-    setpoint every frame). ``P R F`` only moves and negates elements: its products are by 0 and +-1 (exact) and
-    BLAS adds them to a +0, so each element is ``0.0 +`` or ``0.0 -`` one element of R (a zero always comes out
-    +0; tested against the products over 300k matrices with zeros of both signs). A non-finite R (0 * inf in the
-    products) takes the products."""
+def quat_enu_flu_from_R_ned_frd(R_ned_frd: np.ndarray) -> tuple[float, float, float, float]:
+    """``matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd))`` bit for bit, as four floats (``Quadrotor.step`` takes
+    them as they are), without the two matrix products (a setpoint every frame). ``P R F`` only moves and negates
+    elements: its products are by 0 and +-1 (exact) and BLAS adds them to a +0, so each element is ``0.0 +`` or
+    ``0.0 -`` one element of R (a zero always comes out +0; tested against the products over 300k matrices with
+    zeros of both signs). A non-finite R (0 * inf in the products) takes the products."""
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(R_ned_frd, dtype=float).tolist()
     if not math.isfinite(r00 + r01 + r02 + r10 + r11 + r12 + r20 + r21 + r22):
-        return matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd))
+        return tuple(matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd)).tolist())  # type: ignore[return-value]
     return _quat_of(0.0 + r10, 0.0 - r11, 0.0 - r12, 0.0 + r00, 0.0 - r01, 0.0 - r02, 0.0 - r20, 0.0 + r21,
                     0.0 + r22)
 
 
 def _quat_of(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float, m20: float, m21: float,
-             m22: float) -> np.ndarray:
-    """:func:`matrix_to_quat` of the matrix's elements."""
+             m22: float) -> tuple[float, float, float, float]:
+    """:func:`matrix_to_quat` of the matrix's elements, as floats."""
     tr = m00 + m11 + m22
     if tr >= max(m00, m11, m22):
         r = math.sqrt(1.0 + tr)
@@ -370,9 +376,12 @@ def _quat_of(m00: float, m01: float, m02: float, m10: float, m11: float, m12: fl
     else:
         r = math.sqrt(1.0 - m00 - m11 + m22)
         q = (0.5 * (m02 + m20) / r, 0.5 * (m12 + m21) / r, 0.5 * r, 0.5 * (m10 - m01) / r)
-    out = np.array(q)
-    out /= math.sqrt(out.dot(out))  # np.linalg.norm of a vector is sqrt(x.dot(x)): the same bits, without its overhead
-    return -out if out[3] < 0 else out
+    a = np.array(q)
+    n = math.sqrt(a.dot(a))  # np.linalg.norm of a vector is sqrt(x.dot(x)): the same bits, without its overhead
+    # The division and the sign in floats: an array divided by a float is IEEE division element by element, and a
+    # negation is exact (the same bits as out /= n; -out if out[3] < 0, tested over 300k quaternions).
+    x, y, z, w = q[0] / n, q[1] / n, q[2] / n, q[3] / n
+    return (-x, -y, -z, -w) if w < 0 else (x, y, z, w)
 
 
 def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:

@@ -133,6 +133,8 @@ class Wind:
         self._gust = tuple(gust.tolist())
         self._mean = tuple(self.mean.tolist())
         self._decay: tuple[float, float, float] | None = None  # (dt, a, gain) of the last dt
+        m, g = self._mean, self._gust
+        self._calm = (m[0] + g[0], m[1] + g[1], m[2] + g[2])  # step() without gusts
 
     @property
     def gust(self) -> np.ndarray:
@@ -144,15 +146,16 @@ class Wind:
 
         On floats: the same element-wise arithmetic as on 3-vectors (``normal(0, 1)`` is ``0.0 + 1.0 * z``), without
         numpy's per-operation cost (every frame)."""
+        if not self.std > 0:
+            return self._calm  # no gusts: the mean, the same floats every frame
+        if self._decay is None or self._decay[0] != dt:
+            a = math.exp(-dt / self.tau)
+            # Exact discretisation keeps the stationary std at gust_std whatever dt is.
+            self._decay = (dt, a, self.std * math.sqrt(1.0 - a * a))
+        _, a, k = self._decay
         g0, g1, g2 = self._gust
-        if self.std > 0:
-            if self._decay is None or self._decay[0] != dt:
-                a = math.exp(-dt / self.tau)
-                # Exact discretisation keeps the stationary std at gust_std whatever dt is.
-                self._decay = (dt, a, self.std * math.sqrt(1.0 - a * a))
-            _, a, k = self._decay
-            z0, z1, z2 = self.rng.standard_normal(3).tolist()
-            g0, g1, g2 = a * g0 + k * (0.0 + z0), a * g1 + k * (0.0 + z1), a * g2 + k * (0.0 + z2)
-            self._gust = (g0, g1, g2)
+        z0, z1, z2 = self.rng.standard_normal(3).tolist()
+        g0, g1, g2 = a * g0 + k * (0.0 + z0), a * g1 + k * (0.0 + z1), a * g2 + k * (0.0 + z2)
+        self._gust = (g0, g1, g2)
         m0, m1, m2 = self._mean
         return m0 + g0, m1 + g1, m2 + g2
