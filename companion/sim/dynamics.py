@@ -151,6 +151,8 @@ class Quadrotor:
 
     @property
     def state(self) -> QuadState:
+        if self._stale:  # advanced since the last QuadState was built
+            self._publish()
         return self._state
 
     @state.setter
@@ -159,18 +161,47 @@ class Quadrotor:
         self._state = replace(s, p=np.array(s.p, dtype=float), v=np.array(s.v, dtype=float),
                               q=np.array(s.q, dtype=float), omega=np.array(s.omega, dtype=float))
         self._load(self._state)
+        self._stale = False
+        # q_xyzw is state.q: the assigned state's own (maybe not quite unit) quaternion until the first step, then
+        # the integrator's (a QuadState built after a step holds that one).
+        self._q_state = tuple(float(c) for c in self._state.q)
+
+    # The state as floats, without building a QuadState (the runner's per-frame reads; advance() does not build one).
+    @property
+    def p_xyz(self) -> tuple[float, float, float]:
+        """Position, ENU m."""
+        return self._p
+
+    @property
+    def v_xyz(self) -> tuple[float, float, float]:
+        """Velocity, ENU m/s."""
+        return self._v
+
+    @property
+    def q_xyzw(self) -> tuple[float, float, float, float]:
+        """Attitude, body FLU -> world ENU, xyzw (``state.q``'s floats)."""
+        return self._q_state
+
+    @property
+    def on_ground(self) -> bool:
+        return self._on_ground
+
+    @property
+    def ground_contact(self) -> bool:
+        """Latched: touched the ground faster than max_touchdown_speed."""
+        return self._contact
 
     # -- float-level copy of the state (hot path) ---------------------------------------------------
     def _load(self, s: QuadState) -> None:
         self._t = float(s.t)
-        self._p = [float(c) for c in s.p]
-        self._v = [float(c) for c in s.v]
+        self._p = tuple(float(c) for c in s.p)
+        self._v = tuple(float(c) for c in s.v)
         q = np.asarray(s.q, dtype=float)
         if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
             raise ValueError(f"QuadState.q: expected a 4-element xyzw quaternion (got {s.q})")
         q = q / np.linalg.norm(q)
         self._q = tuple(float(c) for c in q)
-        self._w = [float(c) for c in s.omega]
+        self._w = tuple(float(c) for c in s.omega)
         self._f = float(s.f_th)
         self._on_ground = bool(s.on_ground)
         self._contact = bool(s.ground_contact)
@@ -189,6 +220,7 @@ class Quadrotor:
             on_ground=self._on_ground,
             ground_contact=self._contact,
         )
+        self._stale = False
         return self._state
 
     def step(
@@ -199,6 +231,15 @@ class Quadrotor:
 
         ``q_cmd`` (xyzw) and ``wind_enu`` may be tuples of Python floats (the runner's per-frame values), taken as
         they are; other sequences are converted element by element."""
+        self.advance(dt, q_cmd, thrust_norm, wind_enu)
+        return self._publish()
+
+    def advance(
+        self, dt: float, q_cmd: np.ndarray | tuple[float, float, float, float], thrust_norm: float,
+        wind_enu: np.ndarray | tuple[float, float, float] | None = None,
+    ) -> None:
+        """:meth:`step` without building its QuadState (``state`` builds one when read; the runner reads the floats
+        instead: four arrays and a dataclass a frame)."""
         if not dt > 0.0:
             raise ValueError(f"Quadrotor.step: dt must be > 0 (got {dt})")
         p = self.params
@@ -232,7 +273,8 @@ class Quadrotor:
             if self._active is None:
                 self._active = (qc, f_cmd)
         self._integrate(n, h, qc, f_cmd, wind, a_w, a_f, 2.0 / p.tau_att, p.max_rate)
-        return self._publish()
+        self._q_state = self._q
+        self._stale = True
 
     def _integrate(self, n: int, h: float, qc: tuple, f_cmd: float, wind: tuple, a_w: float, a_f: float,
                    k_att: float, wmax: float) -> None:
@@ -313,9 +355,9 @@ class Quadrotor:
             t += h
         self._t, self._f, self._on_ground, self._contact, self._a = t, f, on_ground, contact, acc
         self._q = (qx, qy, qz, qw)
-        self._w = [w0, w1, w2]
-        self._v = [v0, v1, v2]
-        self._p = [p0, p1, p2]
+        self._w = (w0, w1, w2)
+        self._v = (v0, v1, v2)
+        self._p = (p0, p1, p2)
 
     def specific_force_body(self) -> np.ndarray:
         """Accelerometer reading without noise (FLU, m/s^2): R^T (a - g) = (thrust - drag) / m, body."""

@@ -311,45 +311,49 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     k = 0
     while True:
         t = k * dt
-        s = quad.state
+        # The state from the integrator's floats (Quadrotor.advance builds no QuadState): the position as an array
+        # (the camera's and the scorer's numpy arithmetic), the same values as QuadState.p.
+        p_xyz = quad.p_xyz
+        p_enu = np.array(p_xyz)
         g = gate.position(t)
-        vx, vy, vz = s.v.tolist()
+        vx, vy, vz = quad.v_xyz
         speed = math.sqrt(vx * vx + vy * vy + vz * vz)  # np.linalg.norm's value (sqrt of the dot), without its overhead
         top_speed = max(top_speed, speed)
         if crossing is None:
-            crossing = scorer.update(t, s.p, g)
+            crossing = scorer.update(t, p_enu, g)
             t_cross = t
         if pull_scorer is not None:
             pulled = bool(eng is not None and eng.passes and eng.passes[0].status == "pulled_up")
-            pull_scorer.update(t, s.p, s.v, g, gate.velocity(t), pulled)
+            pull_scorer.update(t, p_enu, np.array(quad.v_xyz), g, gate.velocity(t), pulled)
         if crossing is not None and not pulling and (
                 eng is None or eng.phase in (Phase.RECOVER,) or eng.phase.done or t - t_cross > POST_CROSSING_S):
             break
         if hold_end is not None:
-            if t > hold_end or s.ground_contact or s.on_ground:
-                if s.ground_contact or s.on_ground:
+            if t > hold_end or quad.ground_contact or quad.on_ground:
+                if quad.ground_contact or quad.on_ground:
                     outcome = RunOutcome(False, None, None, "ground")
                 break
-            x = quat_to_matrix(s.q)[:, 0]
+            x = quat_to_matrix(quad.q_xyzw)[:, 0]
             q_cmd = Rotation.from_euler("z", math.atan2(x[1], x[0])).as_quat()
             thrust_cmd = params.hover_thrust
-            quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+            quad.advance(dt, q_cmd, thrust_cmd, wind.step(dt))
             k += 1
             continue
-        if s.ground_contact or (s.on_ground and k > 0):
+        if quad.ground_contact or (quad.on_ground and k > 0):
             outcome = RunOutcome(False, None, None, "ground")
             break
         if t > timeout:
             outcome = RunOutcome(False, None, None, "timeout")
             break
-        R_true = quat_to_matrix(s.q)
+        q_true = quad.q_xyzw
+        R_true = quat_to_matrix(q_true)
         # The attitude estimate and the accelerometer (one draw per frame, recorded or not), from the sensors' own
         # stream: drawn before the camera or after, the same.
-        q_est, (ax, ay, az) = sensors.frame(s.q, quad.specific_force_body_xyz())
+        q_est, (ax, ay, az) = sensors.frame(q_true, quad.specific_force_body_xyz())
         if rendered:  # the pipeline moves its track by the attitude the controller is given (perception/derotate.py)
-            box = camera.capture(t, s.p, R_true, g, gate.normal, radius, R_world_body=R_from_quat_wxyz(q_est))
+            box = camera.capture(t, p_enu, R_true, g, gate.normal, radius, R_world_body=R_from_quat_wxyz(q_est))
         else:
-            box = camera.capture(t, s.p, R_true, g, gate.normal, radius)
+            box = camera.capture(t, p_enu, R_true, g, gate.normal, radius)
         frames += 1
         if box is not None:
             frames_with_box += 1
@@ -364,7 +368,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         acc_frd = np.array((ax, -ay, -az))
         pending.append((t + delay, t, box, q_est, acc_frd))
         if steer.kind != "pn":  # only the ablations that know ground truth read it (gate.velocity: ~1.5 % of a frame)
-            steer.truth = (s.p, s.v, g, gate.velocity(t))
+            steer.truth = (p_enu, np.array(quad.v_xyz), g, gate.velocity(t))
         while pending and pending[0][0] <= t + 1e-9:
             _, t_cap, b, q_cap, acc_cap = pending.popleft()
             # The controller may use the accelerometer at the frame's capture time and the frame's age.
@@ -378,7 +382,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                 # Barometric altitude above the ground with the run's baro offset (its white noise, 0.1 m,
                 # is irrelevant to the floor and would shift the attitude-noise stream).
                 acc, t_now = steer.imu
-                step = core.step(FrameInput(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, accel_frd=acc,
+                step = core.step(FrameInput(t_cap, b, q_est, p_xyz[2] + sensors.baro_bias, accel_frd=acc,
                                             t_now=t_now, imu=ImuReading(t, acc_frd)))
                 d = step.decision
                 step.tell_tracker(camera)  # the rendered camera's tracker, as the app's
@@ -404,8 +408,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             break
         if traj is not None:
             traj.t.append(t)
-            traj.p.append(s.p.copy())
-            traj.v.append(s.v.copy())
+            traj.p.append(p_enu.copy())
+            traj.v.append(np.array(quad.v_xyz))
             traj.gate.append(g)
             traj.mode.append(mode)
             traj.thrust.append(thrust_cmd)
@@ -416,8 +420,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
             # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
             traj.accel.append(np.array((ax, ay, az)))
-            traj.baro.append(sensors.baro_altitude(float(s.p[2]), rng_rec))
-        quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+            traj.baro.append(sensors.baro_altitude(p_xyz[2], rng_rec))
+        quad.advance(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
     if crossing is not None and (outcome is None or not pulling):
         outcome = crossing  # ground truth scores the run, whatever the engagement did after

@@ -82,8 +82,12 @@ class Sensors:
         a = math.sqrt(n0 ** 2 + n1 ** 2 + n2 ** 2)
         k = math.sin(0.5 * a) / a if a > 1e-12 else 0.5
         q_noise = (n0 * k, n1 * k, n2 * k, math.cos(0.5 * a))
-        q_true = q_true_xyzw.tolist() if isinstance(q_true_xyzw, np.ndarray) else [float(c) for c in q_true_xyzw]
-        q = qmul(qmul(tuple(q_true), self._q_bias), q_noise)
+        if type(q_true_xyzw) is tuple:  # Quadrotor.q_xyzw's floats (every frame)
+            q_true = q_true_xyzw
+        else:
+            q_true = tuple(q_true_xyzw.tolist() if isinstance(q_true_xyzw, np.ndarray) else
+                           [float(c) for c in q_true_xyzw])
+        q = qmul(qmul(q_true, self._q_bias), q_noise)
         x, y, z, w = qmul(qmul(_Q_P, q), _Q_F)
         return np.array([w, x, y, z]) if w >= 0 else np.array([-w, -x, -y, -z])
 
