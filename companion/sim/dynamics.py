@@ -291,13 +291,18 @@ class Quadrotor:
         w0, w1, w2 = self._w
         v0, v1, v2 = self._v
         p0, p1, p2 = self._p
+        ax, ay, az = acc
+        # Local names for the loop (every substep): math's functions bound once, -wmax once; the same arithmetic.
+        sqrt, sin, cos = math.sqrt, math.sin, math.cos
+        nwmax = -wmax
+        cx, cy, cz, cw = qc
         for _ in range(n):
             if queue is not None:
                 while queue and queue[0][0] <= t:
                     _, q_a, f_a = queue.popleft()
                     self._active = (q_a, f_a)
                 qc, f_cmd = self._active  # type: ignore[misc]
-            cx, cy, cz, cw = qc
+                cx, cy, cz, cw = qc
             # Attitude controller (Brescianini): q_e = q^-1 * q_c, omega_c = 2/tau sgn(q_e0) q_e(1:3).
             ew = qw * cw + qx * cx + qy * cy + qz * cz
             ex = qw * cx - qx * cw - qy * cz + qz * cy
@@ -306,23 +311,24 @@ class Quadrotor:
             k = k_att if ew >= 0.0 else -k_att
             # Exact discretisation of the first-order rate response, command clipped to the rate limit.
             cx_, cy_, cz_ = k * ex, k * ey, k * ez
-            cx_ = wmax if cx_ > wmax else (-wmax if cx_ < -wmax else cx_)
-            cy_ = wmax if cy_ > wmax else (-wmax if cy_ < -wmax else cy_)
-            cz_ = wmax if cz_ > wmax else (-wmax if cz_ < -wmax else cz_)
+            cx_ = wmax if cx_ > wmax else (nwmax if cx_ < nwmax else cx_)
+            cy_ = wmax if cy_ > wmax else (nwmax if cy_ < nwmax else cy_)
+            cz_ = wmax if cz_ > wmax else (nwmax if cz_ < nwmax else cz_)
             w0 += (cx_ - w0) * a_w
             w1 += (cy_ - w1) * a_w
             w2 += (cz_ - w2) * a_w
             f += (f_cmd - f) * a_f  # thrust lag
             # Translational dynamics: a = R (f e_z) - f_aero / m + g; R e_z is the third column of R(q).
             vax, vay, vaz = v0 - wdx, v1 - wdy, v2 - wdz
-            k_d = k_lin + k_quad * math.sqrt(vax * vax + vay * vay + vaz * vaz)
-            ax = 2.0 * f * (qx * qz + qy * qw) - k_d * vax
-            ay = 2.0 * f * (qy * qz - qx * qw) - k_d * vay
+            k_d = k_lin + k_quad * sqrt(vax * vax + vay * vay + vaz * vaz)
+            f2 = 2.0 * f  # (2.0 * f * x is (2.0 * f) * x)
+            ax = f2 * (qx * qz + qy * qw) - k_d * vax
+            ay = f2 * (qy * qz - qx * qw) - k_d * vay
             az = f * (1.0 - 2.0 * (qx * qx + qy * qy)) - k_d * vaz - G
             if on_ground and az <= 0.0:
                 # Resting on the ground: the normal force cancels everything (legs don't slide).
                 v0 = v1 = v2 = 0.0
-                acc = (0.0, 0.0, 0.0)
+                ax = ay = az = 0.0
             else:
                 on_ground = False
                 # Semi-implicit Euler: velocity first, then position with the new velocity.
@@ -332,28 +338,28 @@ class Quadrotor:
                 p0 += v0 * h
                 p1 += v1 * h
                 p2 += v2 * h
-                acc = (ax, ay, az)
                 if p2 <= 0.0:
                     if -v2 > touchdown:
                         contact = True
                     p2 = 0.0
                     v0 = v1 = v2 = 0.0
                     on_ground = True
-                    acc = (0.0, 0.0, 0.0)
+                    ax = ay = az = 0.0
             # Attitude kinematics: q <- q * exp(omega h / 2), exact for constant omega over the step.
-            wn = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            wn = sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             if wn > 1e-12:
                 half = 0.5 * wn * h
-                sh = math.sin(half) / wn
-                dx, dy, dz, dw = w0 * sh, w1 * sh, w2 * sh, math.cos(half)
+                sh = sin(half) / wn
+                dx, dy, dz, dw = w0 * sh, w1 * sh, w2 * sh, cos(half)
                 nx = qw * dx + qx * dw + qy * dz - qz * dy
                 ny = qw * dy - qx * dz + qy * dw + qz * dx
                 nz = qw * dz + qx * dy - qy * dx + qz * dw
                 nw = qw * dw - qx * dx - qy * dy - qz * dz
-                qn = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+                qn = 1.0 / sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
                 qx, qy, qz, qw = nx * qn, ny * qn, nz * qn, nw * qn
             t += h
-        self._t, self._f, self._on_ground, self._contact, self._a = t, f, on_ground, contact, acc
+        # The last substep's true acceleration (zero on the ground), for the accelerometer.
+        self._t, self._f, self._on_ground, self._contact, self._a = t, f, on_ground, contact, (ax, ay, az)
         self._q = (qx, qy, qz, qw)
         self._w = (w0, w1, w2)
         self._v = (v0, v1, v2)
