@@ -105,11 +105,13 @@ def _ratio_extremes(a0: float, a1: float, a2: float, b0: float, b1: float, b2: f
         return v, v
     phi = math.atan2(p, q)  # P sin + Q cos = h cos(theta - phi)
     d = math.acos(max(-1.0, min(1.0, -s / h)))
-    vals = []
-    for th in (phi + d, phi - d):
-        ct, st = math.cos(th), math.sin(th)
-        vals.append((a0 + a1 * ct + a2 * st) / (b0 + b1 * ct + b2 * st))
-    return min(vals), max(vals)
+    # The two angles written out (twice a frame): min/max of [v, w] as the builtins pick them (the first unless the
+    # second is strictly smaller / larger), without a list and a loop.
+    ct, st = math.cos(phi + d), math.sin(phi + d)
+    v = (a0 + a1 * ct + a2 * st) / (b0 + b1 * ct + b2 * st)
+    ct, st = math.cos(phi - d), math.sin(phi - d)
+    w = (a0 + a1 * ct + a2 * st) / (b0 + b1 * ct + b2 * st)
+    return (w if w < v else v), (w if w > v else v)
 
 
 class GeometricCamera:
