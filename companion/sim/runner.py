@@ -301,7 +301,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     top_speed = 0.0
     outcome: RunOutcome | None = None
     crossing: RunOutcome | None = None
-    mode = "init"
+    mode: str | Phase = "init"  # the controller's mode, or the engagement's phase (its name only for the record)
+    imu_to_controller, attitude_at_capture = sim.imu_to_controller, sim.camera.attitude_at_capture
     last_out = None
     end: str | None = None  # the engagement's end (phase and reason), if it ended
     roll_cmd = pitch_cmd = math.nan
@@ -372,8 +373,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         while pending and pending[0][0] <= t + 1e-9:
             _, t_cap, b, q_cap, acc_cap = pending.popleft()
             # The controller may use the accelerometer at the frame's capture time and the frame's age.
-            steer.imu = (acc_cap if cfg.sim.imu_to_controller else None, t)
-            if sim.camera.attitude_at_capture:
+            steer.imu = (acc_cap if imu_to_controller else None, t)
+            if attitude_at_capture:
                 q_est = q_cap
             if core is None:
                 out = steer.step(t_cap, b, q_est)
@@ -386,7 +387,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                                             t_now=t_now, imu=ImuReading(t, acc_frd)))
                 d = step.decision
                 step.tell_tracker(camera)  # the rendered camera's tracker, as the app's
-                sp, mode = d.setpoint, d.phase.value
+                sp, mode = d.setpoint, d.phase  # (an Enum's .value is a Python-level property: read when recorded)
                 last_out = d.control if d.control is not None else last_out
                 if d.phase.done:
                     end = f"{d.phase.value} {d.reason.name if d.reason else ''}".strip()
@@ -411,7 +412,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.p.append(p_enu.copy())
             traj.v.append(np.array(quad.v_xyz))
             traj.gate.append(g)
-            traj.mode.append(mode)
+            traj.mode.append(mode.value if isinstance(mode, Phase) else mode)
             traj.thrust.append(thrust_cmd)
             traj.roll_sp.append(roll_cmd)
             traj.pitch_sp.append(pitch_cmd)
