@@ -216,18 +216,20 @@ class PNController:
         """The closing-speed filter's range rate (m/s, negative when closing) and its standard deviation as of
         the last frame, None without the filter or before its first range (the target lock's speed bound)."""
         est = self._closing
-        if est is None or est.state is None:
+        state = est.state if est is not None else None  # (a property: read once, every frame)
+        if state is None:
             return None
-        return est.state[1], math.sqrt(max(est.P_vv, 0.0))
+        return state[1], math.sqrt(max(est.P_vv, 0.0))  # type: ignore[union-attr]
 
     @property
     def closing_estimate(self) -> tuple[float, float, float | None] | None:
         """The closing-speed filter's range (m) and range rate (m/s) as of the last frame, and when it last measured
         a range from a box (None: never); None without the filter or before its first range."""
         est = self._closing
-        if est is None or est.state is None:
+        state = est.state if est is not None else None
+        if state is None:
             return None
-        return est.state[0], est.state[1], est.t_range
+        return state[0], state[1], est.t_range  # type: ignore[union-attr]
 
     @property
     def drag_enu(self) -> np.ndarray | None:

@@ -32,6 +32,10 @@ if TYPE_CHECKING:
     from companion.config import Config
 
 
+# Phase.commanding's phases, as a tuple (membership by identity: no property call, every frame).
+_COMMANDING = tuple(p for p in Phase if p.commanding)
+
+
 @fast_init
 @dataclass(frozen=True, slots=True)
 class ImuReading:
@@ -123,7 +127,7 @@ class FlightCore:
         d = self.engagement.step(inp.t, inp.box, inp.q_wxyz_ned_frd, inp.baro_rel_alt, inp.events,
                                  accel_frd=inp.accel_frd, t_now=inp.t_now, confirm=inp.confirm)
         hover = hover_input = None
-        if d.setpoint is not None and d.phase.commanding:
+        if d.setpoint is not None and d.phase in _COMMANDING:
             a_up = None
             if inp.imu is not None and self.hover_estimator is not None:
                 # The frame's attitude (capture time) with the newest IMU sample: the tilt moves little between.
@@ -132,9 +136,11 @@ class FlightCore:
                     hover_input = (self._hover_u, a_up)
             hover = self._hover_update(inp.imu, d.setpoint.thrust, a_up)
         reset = (d.changed and d.phase is Phase.RECOVER) or self.engagement.drop_tracker
-        return CoreStep(d, reset_tracker=reset, refuse_candidate=self.engagement.refuse_candidate,
-                        passes_confirmed=self.engagement.passes_confirmed, hover=hover,
-                        hover_input=hover_input if hover is not None else None)
+        eng = self.engagement
+        # Positional (the field order of CoreStep): keywords cost a fast_init __init__ a dict per frame. No pass
+        # yet: 0 confirmed, without the count's generator (every frame until the first pass).
+        return CoreStep(d, reset, eng.refuse_candidate, eng.passes_confirmed if eng.passes else 0, hover,
+                        hover_input if hover is not None else None)
 
     def _hover_update(self, imu: ImuReading | None, thrust: float, a_up: float | None) -> HoverEstimate | None:
         """hover.estimate: the IMU's specific force against the thrust commanded since the last setpoint; the

@@ -131,14 +131,18 @@ def thrust_specific_force(accel_frd: Any, R_ned_frd: Any | None, cfg: HoverConfi
     removes a horizontal drag exactly; NaN (no sample) beyond ``max_tilt``. Else the accelerometer's -z.
     """
     c = cfg or HoverConfig()
-    f = np.asarray(accel_frd, float)
+    # An array of floats is used as it is (asarray's call costs more than the rest of this; every frame).
+    f = accel_frd if type(accel_frd) is np.ndarray and accel_frd.dtype is _F64 else np.asarray(accel_frd, float)
     if not c.drag_correction or R_ned_frd is None:
         return -float(f[2])
-    r = np.asarray(R_ned_frd, float)[2]
-    cos_tilt = float(r[2])
+    r = (R_ned_frd if type(R_ned_frd) is np.ndarray and R_ned_frd.dtype is _F64 else np.asarray(R_ned_frd, float))[2]
+    cos_tilt = r.item(2)  # float(r[2]) without the scalar object
     if not cos_tilt >= _cos_deg(c.max_tilt):
         return math.nan
     return -float(r.dot(f)) / cos_tilt  # .dot: the same BLAS ddot as @, without matmul's dispatch (every frame)
+
+
+_F64 = np.dtype(np.float64)  # the native float64 dtype is a singleton: an identity test
 
 
 @cache
@@ -182,9 +186,18 @@ def use_hover_thrust(ctrl: Any, hover_thrust: float, thrust_to_weight: float, en
     p = ctrl.p
     f_max = G * min(thrust_to_weight, 1.0 / hover_thrust)
     f_min = G * p.thrust_min / hover_thrust
-    ctrl.p = _replaced(p, hover_thrust=hover_thrust, guidance=_replaced(p.guidance, f_max=f_max, f_min=f_min))
+    # _replacer's functions called positionally (every frame: _replaced's keyword dict and key tuple cost a tenth
+    # of these three copies); the same objects as _replaced(p, hover_thrust=..., guidance=...) etc.
+    gp = p.guidance
+    ctrl.p = _replacer(type(p), _P_FIELDS)(p, hover_thrust, _replacer(type(gp), _G_FIELDS)(gp, f_max, f_min))
     if engagement is not None:
-        engagement.params = _replaced(engagement.params, hover_thrust=hover_thrust, f_min=f_min, f_max=f_max)
+        ep = engagement.params
+        engagement.params = _replacer(type(ep), _E_FIELDS)(ep, hover_thrust, f_min, f_max)
+
+
+_P_FIELDS = ("hover_thrust", "guidance")  # what use_hover_thrust changes, in the order it passes them
+_G_FIELDS = ("f_max", "f_min")
+_E_FIELDS = ("hover_thrust", "f_min", "f_max")
 
 
 def _replaced(obj: Any, **changes: Any) -> Any:

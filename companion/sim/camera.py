@@ -37,6 +37,7 @@ import numpy as np
 
 from companion.frames import F_FRD_FLU, cross_xyz
 from companion.sim.boxnoise import PROFILES, DetectorNoise
+from companion.sim.draws import NormalReadAhead
 from perception.los import CameraModel
 from perception.types import BoundingBox
 
@@ -104,11 +105,13 @@ def _ratio_extremes(a0: float, a1: float, a2: float, b0: float, b1: float, b2: f
         return v, v
     phi = math.atan2(p, q)  # P sin + Q cos = h cos(theta - phi)
     d = math.acos(max(-1.0, min(1.0, -s / h)))
-    vals = []
-    for th in (phi + d, phi - d):
-        ct, st = math.cos(th), math.sin(th)
-        vals.append((a0 + a1 * ct + a2 * st) / (b0 + b1 * ct + b2 * st))
-    return min(vals), max(vals)
+    # The two angles written out (twice a frame): min/max of [v, w] as the builtins pick them (the first unless the
+    # second is strictly smaller / larger), without a list and a loop.
+    ct, st = math.cos(phi + d), math.sin(phi + d)
+    v = (a0 + a1 * ct + a2 * st) / (b0 + b1 * ct + b2 * st)
+    ct, st = math.cos(phi - d), math.sin(phi - d)
+    w = (a0 + a1 * ct + a2 * st) / (b0 + b1 * ct + b2 * st)
+    return (w if w < v else v), (w if w > v else v)
 
 
 class GeometricCamera:
@@ -133,6 +136,7 @@ class GeometricCamera:
         self._R_flu_cam = F_FRD_FLU @ model.R_body_cam
         self._distorted = bool(model.dist.size and np.any(model.dist != 0.0))
         self.detector_noise: DetectorNoise | None = None  # set: the detector error model replaces pixel_noise
+        self._ahead: NormalReadAhead | None = None  # read_ahead(): the pixel noise's normals
         self.rect: tuple[float, float] | None = None  # (half width, half height) of a rectangular target; None: ring
         self._wh = np.array([float(model.width), float(model.height)])  # the image's far corner, px
         K = model.K
@@ -148,7 +152,17 @@ class GeometricCamera:
 
     def use_detector_noise(self, noise: DetectorNoise) -> None:
         """Opt in to the detector-like box error (``sim.camera.noise_model: detector``) instead of white noise."""
+        if self._ahead is not None:
+            raise RuntimeError("GeometricCamera: read_ahead() is on; the detector noise would share its stream")
         self.detector_noise = noise
+
+    def read_ahead(self, block: int = 256) -> None:
+        """From now on the pixel noise comes from normals drawn a block ahead (the same values, ``normal(0, s)``
+        being ``0.0 + s * z``; one numpy call a block, not a frame). Only when the pixel noise is the stream's one
+        reader: no drops, no detector noise."""
+        if self.drop_prob > 0.0 or self.detector_noise is not None:
+            raise RuntimeError("GeometricCamera.read_ahead: drops or the detector noise draw from the same stream")
+        self._ahead = NormalReadAhead(self.rng, block)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (n, 2) of camera-frame points with z > 0."""
@@ -316,7 +330,12 @@ class GeometricCamera:
             return self.detector_noise.apply(box)
         if box is None or self.pixel_noise <= 0.0:
             return box
-        n0, n1, n2, n3 = self.rng.normal(0.0, self.pixel_noise, 4).tolist()  # Python floats: cheaper downstream
+        if self._ahead is not None:
+            s = self.pixel_noise
+            z0, z1, z2, z3 = self._ahead.take(4)
+            n0, n1, n2, n3 = 0.0 + s * z0, 0.0 + s * z1, 0.0 + s * z2, 0.0 + s * z3
+        else:
+            n0, n1, n2, n3 = self.rng.normal(0.0, self.pixel_noise, 4).tolist()  # Python floats: cheaper downstream
         m = self.model
         cx = min(max(box.cx + n0, 0.0), float(m.width))
         cy = min(max(box.cy + n1, 0.0), float(m.height))

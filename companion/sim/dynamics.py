@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.frames import R_from_quat_wxyz
+from companion.frames import R_enu_flu_from_ned_frd, R_from_quat_wxyz
 
 G = 9.81  # m/s^2, the paper's |g|
 
@@ -151,6 +151,8 @@ class Quadrotor:
 
     @property
     def state(self) -> QuadState:
+        if self._stale:  # advanced since the last QuadState was built
+            self._publish()
         return self._state
 
     @state.setter
@@ -159,18 +161,47 @@ class Quadrotor:
         self._state = replace(s, p=np.array(s.p, dtype=float), v=np.array(s.v, dtype=float),
                               q=np.array(s.q, dtype=float), omega=np.array(s.omega, dtype=float))
         self._load(self._state)
+        self._stale = False
+        # q_xyzw is state.q: the assigned state's own (maybe not quite unit) quaternion until the first step, then
+        # the integrator's (a QuadState built after a step holds that one).
+        self._q_state = tuple(float(c) for c in self._state.q)
+
+    # The state as floats, without building a QuadState (the runner's per-frame reads; advance() does not build one).
+    @property
+    def p_xyz(self) -> tuple[float, float, float]:
+        """Position, ENU m."""
+        return self._p
+
+    @property
+    def v_xyz(self) -> tuple[float, float, float]:
+        """Velocity, ENU m/s."""
+        return self._v
+
+    @property
+    def q_xyzw(self) -> tuple[float, float, float, float]:
+        """Attitude, body FLU -> world ENU, xyzw (``state.q``'s floats)."""
+        return self._q_state
+
+    @property
+    def on_ground(self) -> bool:
+        return self._on_ground
+
+    @property
+    def ground_contact(self) -> bool:
+        """Latched: touched the ground faster than max_touchdown_speed."""
+        return self._contact
 
     # -- float-level copy of the state (hot path) ---------------------------------------------------
     def _load(self, s: QuadState) -> None:
         self._t = float(s.t)
-        self._p = [float(c) for c in s.p]
-        self._v = [float(c) for c in s.v]
+        self._p = tuple(float(c) for c in s.p)
+        self._v = tuple(float(c) for c in s.v)
         q = np.asarray(s.q, dtype=float)
         if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
             raise ValueError(f"QuadState.q: expected a 4-element xyzw quaternion (got {s.q})")
         q = q / np.linalg.norm(q)
         self._q = tuple(float(c) for c in q)
-        self._w = [float(c) for c in s.omega]
+        self._w = tuple(float(c) for c in s.omega)
         self._f = float(s.f_th)
         self._on_ground = bool(s.on_ground)
         self._contact = bool(s.ground_contact)
@@ -189,25 +220,45 @@ class Quadrotor:
             on_ground=self._on_ground,
             ground_contact=self._contact,
         )
+        self._stale = False
         return self._state
 
     def step(
-        self, dt: float, q_cmd: np.ndarray, thrust_norm: float, wind_enu: np.ndarray | None = None
+        self, dt: float, q_cmd: np.ndarray | tuple[float, float, float, float], thrust_norm: float,
+        wind_enu: np.ndarray | tuple[float, float, float] | None = None,
     ) -> QuadState:
-        """Advance by dt seconds holding the command (zero-order hold, as PX4 holds a setpoint)."""
+        """Advance by dt seconds holding the command (zero-order hold, as PX4 holds a setpoint).
+
+        ``q_cmd`` (xyzw) and ``wind_enu`` may be tuples of Python floats (the runner's per-frame values), taken as
+        they are; other sequences are converted element by element."""
+        self.advance(dt, q_cmd, thrust_norm, wind_enu)
+        return self._publish()
+
+    def advance(
+        self, dt: float, q_cmd: np.ndarray | tuple[float, float, float, float], thrust_norm: float,
+        wind_enu: np.ndarray | tuple[float, float, float] | None = None,
+    ) -> None:
+        """:meth:`step` without building its QuadState (``state`` builds one when read; the runner reads the floats
+        instead: four arrays and a dataclass a frame)."""
         if not dt > 0.0:
             raise ValueError(f"Quadrotor.step: dt must be > 0 (got {dt})")
         p = self.params
         # tolist: the same floats as float() of each element, in one call (every frame)
-        c0, c1, c2, c3 = q_cmd.tolist() if type(q_cmd) is np.ndarray else (float(c) for c in q_cmd[:4])
+        if type(q_cmd) is tuple and len(q_cmd) == 4:  # quat_enu_flu_from_R_ned_frd's floats (every frame)
+            c0, c1, c2, c3 = q_cmd
+        else:
+            c0, c1, c2, c3 = q_cmd.tolist() if type(q_cmd) is np.ndarray else (float(c) for c in q_cmd[:4])
         nrm = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3)
         if not (nrm > 1e-9 and math.isfinite(nrm)):
             raise ValueError(f"Quadrotor.step: q_cmd is not a quaternion (got {q_cmd})")
         qc = (c0 / nrm, c1 / nrm, c2 / nrm, c3 / nrm)
         thr = min(max(float(thrust_norm), 0.0), 1.0)
         f_cmd = min(thr * G / p.hover_thrust, p.f_max)
-        wind = (0.0, 0.0, 0.0) if wind_enu is None else (
-            tuple(wind_enu.tolist()) if type(wind_enu) is np.ndarray else tuple(float(c) for c in wind_enu[:3]))
+        if type(wind_enu) is tuple and len(wind_enu) == 3:  # Wind.step's floats (every frame)
+            wind = wind_enu
+        else:
+            wind = (0.0, 0.0, 0.0) if wind_enu is None else (
+                tuple(wind_enu.tolist()) if type(wind_enu) is np.ndarray else tuple(float(c) for c in wind_enu[:3]))
         coeffs = self._coeffs.get(dt)
         if coeffs is None:
             n = max(1, math.ceil(dt / p.max_step - 1e-9))
@@ -222,7 +273,8 @@ class Quadrotor:
             if self._active is None:
                 self._active = (qc, f_cmd)
         self._integrate(n, h, qc, f_cmd, wind, a_w, a_f, 2.0 / p.tau_att, p.max_rate)
-        return self._publish()
+        self._q_state = self._q
+        self._stale = True
 
     def _integrate(self, n: int, h: float, qc: tuple, f_cmd: float, wind: tuple, a_w: float, a_f: float,
                    k_att: float, wmax: float) -> None:
@@ -239,13 +291,18 @@ class Quadrotor:
         w0, w1, w2 = self._w
         v0, v1, v2 = self._v
         p0, p1, p2 = self._p
+        ax, ay, az = acc
+        # Local names for the loop (every substep): math's functions bound once, -wmax once; the same arithmetic.
+        sqrt, sin, cos = math.sqrt, math.sin, math.cos
+        nwmax = -wmax
+        cx, cy, cz, cw = qc
         for _ in range(n):
             if queue is not None:
                 while queue and queue[0][0] <= t:
                     _, q_a, f_a = queue.popleft()
                     self._active = (q_a, f_a)
                 qc, f_cmd = self._active  # type: ignore[misc]
-            cx, cy, cz, cw = qc
+                cx, cy, cz, cw = qc
             # Attitude controller (Brescianini): q_e = q^-1 * q_c, omega_c = 2/tau sgn(q_e0) q_e(1:3).
             ew = qw * cw + qx * cx + qy * cy + qz * cz
             ex = qw * cx - qx * cw - qy * cz + qz * cy
@@ -254,23 +311,24 @@ class Quadrotor:
             k = k_att if ew >= 0.0 else -k_att
             # Exact discretisation of the first-order rate response, command clipped to the rate limit.
             cx_, cy_, cz_ = k * ex, k * ey, k * ez
-            cx_ = wmax if cx_ > wmax else (-wmax if cx_ < -wmax else cx_)
-            cy_ = wmax if cy_ > wmax else (-wmax if cy_ < -wmax else cy_)
-            cz_ = wmax if cz_ > wmax else (-wmax if cz_ < -wmax else cz_)
+            cx_ = wmax if cx_ > wmax else (nwmax if cx_ < nwmax else cx_)
+            cy_ = wmax if cy_ > wmax else (nwmax if cy_ < nwmax else cy_)
+            cz_ = wmax if cz_ > wmax else (nwmax if cz_ < nwmax else cz_)
             w0 += (cx_ - w0) * a_w
             w1 += (cy_ - w1) * a_w
             w2 += (cz_ - w2) * a_w
             f += (f_cmd - f) * a_f  # thrust lag
             # Translational dynamics: a = R (f e_z) - f_aero / m + g; R e_z is the third column of R(q).
             vax, vay, vaz = v0 - wdx, v1 - wdy, v2 - wdz
-            k_d = k_lin + k_quad * math.sqrt(vax * vax + vay * vay + vaz * vaz)
-            ax = 2.0 * f * (qx * qz + qy * qw) - k_d * vax
-            ay = 2.0 * f * (qy * qz - qx * qw) - k_d * vay
+            k_d = k_lin + k_quad * sqrt(vax * vax + vay * vay + vaz * vaz)
+            f2 = 2.0 * f  # (2.0 * f * x is (2.0 * f) * x)
+            ax = f2 * (qx * qz + qy * qw) - k_d * vax
+            ay = f2 * (qy * qz - qx * qw) - k_d * vay
             az = f * (1.0 - 2.0 * (qx * qx + qy * qy)) - k_d * vaz - G
             if on_ground and az <= 0.0:
                 # Resting on the ground: the normal force cancels everything (legs don't slide).
                 v0 = v1 = v2 = 0.0
-                acc = (0.0, 0.0, 0.0)
+                ax = ay = az = 0.0
             else:
                 on_ground = False
                 # Semi-implicit Euler: velocity first, then position with the new velocity.
@@ -280,37 +338,41 @@ class Quadrotor:
                 p0 += v0 * h
                 p1 += v1 * h
                 p2 += v2 * h
-                acc = (ax, ay, az)
                 if p2 <= 0.0:
                     if -v2 > touchdown:
                         contact = True
                     p2 = 0.0
                     v0 = v1 = v2 = 0.0
                     on_ground = True
-                    acc = (0.0, 0.0, 0.0)
+                    ax = ay = az = 0.0
             # Attitude kinematics: q <- q * exp(omega h / 2), exact for constant omega over the step.
-            wn = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            wn = sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             if wn > 1e-12:
                 half = 0.5 * wn * h
-                sh = math.sin(half) / wn
-                dx, dy, dz, dw = w0 * sh, w1 * sh, w2 * sh, math.cos(half)
+                sh = sin(half) / wn
+                dx, dy, dz, dw = w0 * sh, w1 * sh, w2 * sh, cos(half)
                 nx = qw * dx + qx * dw + qy * dz - qz * dy
                 ny = qw * dy - qx * dz + qy * dw + qz * dx
                 nz = qw * dz + qx * dy - qy * dx + qz * dw
                 nw = qw * dw - qx * dx - qy * dy - qz * dz
-                qn = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+                qn = 1.0 / sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
                 qx, qy, qz, qw = nx * qn, ny * qn, nz * qn, nw * qn
             t += h
-        self._t, self._f, self._on_ground, self._contact, self._a = t, f, on_ground, contact, acc
+        # The last substep's true acceleration (zero on the ground), for the accelerometer.
+        self._t, self._f, self._on_ground, self._contact, self._a = t, f, on_ground, contact, (ax, ay, az)
         self._q = (qx, qy, qz, qw)
-        self._w = [w0, w1, w2]
-        self._v = [v0, v1, v2]
-        self._p = [p0, p1, p2]
+        self._w = (w0, w1, w2)
+        self._v = (v0, v1, v2)
+        self._p = (p0, p1, p2)
 
     def specific_force_body(self) -> np.ndarray:
         """Accelerometer reading without noise (FLU, m/s^2): R^T (a - g) = (thrust - drag) / m, body."""
+        return np.array(self.specific_force_body_xyz())
+
+    def specific_force_body_xyz(self) -> tuple[float, float, float]:
+        """:meth:`specific_force_body` as three floats (the simulator's per-frame path: no array)."""
         a = self._a
-        return np.array(_rot_inv(self._q, (a[0], a[1], a[2] + G)))
+        return _rot_inv(self._q, (a[0], a[1], a[2] + G))  # type: ignore[return-value]
 
     def acceleration_world(self) -> np.ndarray:
         """True acceleration of the last substep, ENU m/s^2 (for scoring and tests)."""
@@ -330,6 +392,25 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """xyzw quaternion (w >= 0) of a rotation matrix, Shepperd's method (numerically safe branch)."""
     # tolist: the same floats as float() of each element, in one call (every frame).
     (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(R, dtype=float).tolist()
+    return np.array(_quat_of(m00, m01, m02, m10, m11, m12, m20, m21, m22))
+
+
+def quat_enu_flu_from_R_ned_frd(R_ned_frd: np.ndarray) -> tuple[float, float, float, float]:
+    """``matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd))`` bit for bit, as four floats (``Quadrotor.step`` takes
+    them as they are), without the two matrix products (a setpoint every frame). ``P R F`` only moves and negates
+    elements: its products are by 0 and +-1 (exact) and BLAS adds them to a +0, so each element is ``0.0 +`` or
+    ``0.0 -`` one element of R (a zero always comes out +0; tested against the products over 300k matrices with
+    zeros of both signs). A non-finite R (0 * inf in the products) takes the products."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(R_ned_frd, dtype=float).tolist()
+    if not math.isfinite(r00 + r01 + r02 + r10 + r11 + r12 + r20 + r21 + r22):
+        return tuple(matrix_to_quat(R_enu_flu_from_ned_frd(R_ned_frd)).tolist())  # type: ignore[return-value]
+    return _quat_of(0.0 + r10, 0.0 - r11, 0.0 - r12, 0.0 + r00, 0.0 - r01, 0.0 - r02, 0.0 - r20, 0.0 + r21,
+                    0.0 + r22)
+
+
+def _quat_of(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float, m20: float, m21: float,
+             m22: float) -> tuple[float, float, float, float]:
+    """:func:`matrix_to_quat` of the matrix's elements, as floats."""
     tr = m00 + m11 + m22
     if tr >= max(m00, m11, m22):
         r = math.sqrt(1.0 + tr)
@@ -343,9 +424,12 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     else:
         r = math.sqrt(1.0 - m00 - m11 + m22)
         q = (0.5 * (m02 + m20) / r, 0.5 * (m12 + m21) / r, 0.5 * r, 0.5 * (m10 - m01) / r)
-    out = np.array(q)
-    out /= math.sqrt(out.dot(out))  # np.linalg.norm of a vector is sqrt(x.dot(x)): the same bits, without its overhead
-    return -out if out[3] < 0 else out
+    a = np.array(q)
+    n = math.sqrt(a.dot(a))  # np.linalg.norm of a vector is sqrt(x.dot(x)): the same bits, without its overhead
+    # The division and the sign in floats: an array divided by a float is IEEE division element by element, and a
+    # negation is exact (the same bits as out /= n; -out if out[3] < 0, tested over 300k quaternions).
+    x, y, z, w = q[0] / n, q[1] / n, q[2] / n, q[3] / n
+    return (-x, -y, -z, -w) if w < 0 else (x, y, z, w)
 
 
 def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:

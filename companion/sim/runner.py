@@ -29,11 +29,11 @@ from scipy.spatial.transform import Rotation
 from companion.configbase import deep_merge
 from companion.core import FlightCore, FrameInput, ImuReading
 from companion.engagement import Phase
-from companion.frames import P_NED_ENU, R_enu_flu_from_ned_frd, R_from_quat_wxyz
+from companion.frames import P_NED_ENU, R_from_quat_wxyz
 from companion.metrics import NO_OSCILLATION, Oscillation, max_tilt_deg, oscillation
 from companion.reasons import Reason
 from companion.sim.camera import GeometricCamera, detector_noise, true_camera_config
-from companion.sim.dynamics import QuadParams, Quadrotor, matrix_to_quat, quat_to_matrix
+from companion.sim.dynamics import QuadParams, Quadrotor, quat_enu_flu_from_R_ned_frd, quat_to_matrix
 from companion.sim.gates import ALL_MOTIONS, MOTIONS, MotionKind
 from companion.sim.scenario import Scenario, make_scenario
 from companion.sim.scoring import PlaneCrossingScorer, PullUpScorer, RunOutcome
@@ -122,9 +122,6 @@ def with_overrides(cfg: Config, overrides: dict[str, Any]) -> Config:
     from companion.config import Config
 
     return Config.model_validate(deep_merge(cfg.model_dump(), overrides))
-
-
-_FLU_TO_FRD = np.array([1.0, -1.0, -1.0])
 
 
 class _Steering:
@@ -272,10 +269,15 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         if not isinstance(camera, GeometricCamera):
             raise ValueError(f"run: the rendered camera draws rings only (sim.target.shape {sim.target.shape!r})")
         camera.use_rectangle(tw, th)
+    if type(camera) is GeometricCamera and sim.camera.drop_prob <= 0.0 and camera.detector_noise is None:
+        camera.read_ahead()  # the pixel noise is the camera stream's one reader: its normals a block at a time
     sensors = Sensors(sim.sensors, rng_sens)
+    sensors.read_ahead()  # rng_sens is the sensors' alone (the logged barometer has rng_rec)
     wind = Wind(sim.wind, rng_wind)
     steer = _Steering(cfg, spec.controller)
-    core = FlightCore.from_config(cfg, controller=steer) if engaged else None
+    # The engagement steps the PN controller with the frame's accelerometer and time itself, and every other use of
+    # the wrapper passes straight through for "pn": it gets the controller, without a layer of calls a frame.
+    core = FlightCore.from_config(cfg, controller=steer.ctrl if spec.controller == "pn" else steer) if engaged else None
     eng = core.engagement if core is not None else None
     scorer = PlaneCrossingScorer(gate.normal)
     pulling = eng is not None and cfg.app.on_close == "pull_up"
@@ -299,7 +301,8 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     top_speed = 0.0
     outcome: RunOutcome | None = None
     crossing: RunOutcome | None = None
-    mode = "init"
+    mode: str | Phase = "init"  # the controller's mode, or the engagement's phase (its name only for the record)
+    imu_to_controller, attitude_at_capture = sim.imu_to_controller, sim.camera.attitude_at_capture
     last_out = None
     end: str | None = None  # the engagement's end (phase and reason), if it ended
     roll_cmd = pitch_cmd = math.nan
@@ -309,43 +312,49 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
     k = 0
     while True:
         t = k * dt
-        s = quad.state
+        # The state from the integrator's floats (Quadrotor.advance builds no QuadState): the position as an array
+        # (the camera's and the scorer's numpy arithmetic), the same values as QuadState.p.
+        p_xyz = quad.p_xyz
+        p_enu = np.array(p_xyz)
         g = gate.position(t)
-        vx, vy, vz = s.v.tolist()
+        vx, vy, vz = quad.v_xyz
         speed = math.sqrt(vx * vx + vy * vy + vz * vz)  # np.linalg.norm's value (sqrt of the dot), without its overhead
         top_speed = max(top_speed, speed)
         if crossing is None:
-            crossing = scorer.update(t, s.p, g)
+            crossing = scorer.update(t, p_enu, g)
             t_cross = t
         if pull_scorer is not None:
             pulled = bool(eng is not None and eng.passes and eng.passes[0].status == "pulled_up")
-            pull_scorer.update(t, s.p, s.v, g, gate.velocity(t), pulled)
+            pull_scorer.update(t, p_enu, np.array(quad.v_xyz), g, gate.velocity(t), pulled)
         if crossing is not None and not pulling and (
                 eng is None or eng.phase in (Phase.RECOVER,) or eng.phase.done or t - t_cross > POST_CROSSING_S):
             break
         if hold_end is not None:
-            if t > hold_end or s.ground_contact or s.on_ground:
-                if s.ground_contact or s.on_ground:
+            if t > hold_end or quad.ground_contact or quad.on_ground:
+                if quad.ground_contact or quad.on_ground:
                     outcome = RunOutcome(False, None, None, "ground")
                 break
-            x = quat_to_matrix(s.q)[:, 0]
+            x = quat_to_matrix(quad.q_xyzw)[:, 0]
             q_cmd = Rotation.from_euler("z", math.atan2(x[1], x[0])).as_quat()
             thrust_cmd = params.hover_thrust
-            quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+            quad.advance(dt, q_cmd, thrust_cmd, wind.step(dt))
             k += 1
             continue
-        if s.ground_contact or (s.on_ground and k > 0):
+        if quad.ground_contact or (quad.on_ground and k > 0):
             outcome = RunOutcome(False, None, None, "ground")
             break
         if t > timeout:
             outcome = RunOutcome(False, None, None, "timeout")
             break
-        R_true = quat_to_matrix(s.q)
-        q_est = sensors.attitude_wxyz_ned_frd(s.q)  # its own stream: drawn before the camera or after, the same
+        q_true = quad.q_xyzw
+        R_true = quat_to_matrix(q_true)
+        # The attitude estimate and the accelerometer (one draw per frame, recorded or not), from the sensors' own
+        # stream: drawn before the camera or after, the same.
+        q_est, (ax, ay, az) = sensors.frame(q_true, quad.specific_force_body_xyz())
         if rendered:  # the pipeline moves its track by the attitude the controller is given (perception/derotate.py)
-            box = camera.capture(t, s.p, R_true, g, gate.normal, radius, R_world_body=R_from_quat_wxyz(q_est))
+            box = camera.capture(t, p_enu, R_true, g, gate.normal, radius, R_world_body=R_from_quat_wxyz(q_est))
         else:
-            box = camera.capture(t, s.p, R_true, g, gate.normal, radius)
+            box = camera.capture(t, p_enu, R_true, g, gate.normal, radius)
         frames += 1
         if box is not None:
             frames_with_box += 1
@@ -356,16 +365,16 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
         # The controller's contract: the box of the frame captured at t_cap with the attitude at t_cap
         # (the app matches telemetry to the frame time). attitude_at_capture=False instead pairs the
         # late box with the attitude at arrival, which is what a naive pipeline does.
-        imu = sensors.imu(quad.specific_force_body(), s.omega)  # one draw per frame, recorded or not
-        acc_frd = imu.accel * _FLU_TO_FRD  # the accelerometer as PX4 reports it (body FRD)
+        # The accelerometer as PX4 reports it (body FRD): the FLU reading times (1, -1, -1), element by element.
+        acc_frd = np.array((ax, -ay, -az))
         pending.append((t + delay, t, box, q_est, acc_frd))
         if steer.kind != "pn":  # only the ablations that know ground truth read it (gate.velocity: ~1.5 % of a frame)
-            steer.truth = (s.p, s.v, g, gate.velocity(t))
+            steer.truth = (p_enu, np.array(quad.v_xyz), g, gate.velocity(t))
         while pending and pending[0][0] <= t + 1e-9:
             _, t_cap, b, q_cap, acc_cap = pending.popleft()
             # The controller may use the accelerometer at the frame's capture time and the frame's age.
-            steer.imu = (acc_cap if cfg.sim.imu_to_controller else None, t)
-            if sim.camera.attitude_at_capture:
+            steer.imu = (acc_cap if imu_to_controller else None, t)
+            if attitude_at_capture:
                 q_est = q_cap
             if core is None:
                 out = steer.step(t_cap, b, q_est)
@@ -374,11 +383,11 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                 # Barometric altitude above the ground with the run's baro offset (its white noise, 0.1 m,
                 # is irrelevant to the floor and would shift the attitude-noise stream).
                 acc, t_now = steer.imu
-                step = core.step(FrameInput(t_cap, b, q_est, float(s.p[2]) + sensors.baro_bias, accel_frd=acc,
+                step = core.step(FrameInput(t_cap, b, q_est, p_xyz[2] + sensors.baro_bias, accel_frd=acc,
                                             t_now=t_now, imu=ImuReading(t, acc_frd)))
                 d = step.decision
                 step.tell_tracker(camera)  # the rendered camera's tracker, as the app's
-                sp, mode = d.setpoint, d.phase.value
+                sp, mode = d.setpoint, d.phase  # (an Enum's .value is a Python-level property: read when recorded)
                 last_out = d.control if d.control is not None else last_out
                 if d.phase.done:
                     end = f"{d.phase.value} {d.reason.name if d.reason else ''}".strip()
@@ -390,7 +399,7 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
                     break
             if sp is None:
                 continue  # ACQUIRE: PX4 holds (here: the cruise trim)
-            q_cmd = matrix_to_quat(R_enu_flu_from_ned_frd(sp.R_ned_frd))
+            q_cmd = quat_enu_flu_from_R_ned_frd(sp.R_ned_frd)
             thrust_cmd = sp.thrust
             sp_t.append(t)
             sp_roll.append(sp.roll_deg)
@@ -400,10 +409,10 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             break
         if traj is not None:
             traj.t.append(t)
-            traj.p.append(s.p.copy())
-            traj.v.append(s.v.copy())
+            traj.p.append(p_enu.copy())
+            traj.v.append(np.array(quad.v_xyz))
             traj.gate.append(g)
-            traj.mode.append(mode)
+            traj.mode.append(mode.value if isinstance(mode, Phase) else mode)
             traj.thrust.append(thrust_cmd)
             traj.roll_sp.append(roll_cmd)
             traj.pitch_sp.append(pitch_cmd)
@@ -411,9 +420,9 @@ def run_once(cfg: Config, spec: RunSpec, record: bool = False) -> RunResult:
             traj.demand_scale.append(float(getattr(last_out, "demand_scale", float("nan"))))
             traj.lambda_dot.append(float(getattr(last_out, "lambda_dot", float("nan"))))
             # IMU and baro are simulated for the log (and the app's safety layer); the PN law needs neither.
-            traj.accel.append(imu.accel)
-            traj.baro.append(sensors.baro_altitude(float(s.p[2]), rng_rec))
-        quad.step(dt, q_cmd, thrust_cmd, wind.step(dt))
+            traj.accel.append(np.array((ax, ay, az)))
+            traj.baro.append(sensors.baro_altitude(p_xyz[2], rng_rec))
+        quad.advance(dt, q_cmd, thrust_cmd, wind.step(dt))
         k += 1
     if crossing is not None and (outcome is None or not pulling):
         outcome = crossing  # ground truth scores the run, whatever the engagement did after

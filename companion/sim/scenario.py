@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from companion.frames import cross_xyz
 from companion.sim.dynamics import G, QuadParams, QuadState
 from companion.sim.gates import GateMotion, MotionKind, make_gate
 
@@ -38,14 +39,18 @@ class Scenario:
 
 def cruise_attitude(v_enu: np.ndarray, heading_enu: np.ndarray, params: QuadParams) -> tuple[np.ndarray, float]:
     """(q xyzw, mass-normalised thrust) that holds velocity v against drag and gravity, body x toward heading."""
-    speed = float(np.linalg.norm(v_enu))
-    drag_acc = (params.drag_lin + params.drag_quad * speed) * np.asarray(v_enu, float) / params.mass
+    # Once a run, but ~1 % of a simulated frame: np.linalg.norm of a vector is sqrt(v.dot(v)), its own formula, and
+    # np.cross is cross_xyz's element-wise formula; the same bits without their wrappers.
+    v = np.asarray(v_enu, float)
+    speed = math.sqrt(v.dot(v))
+    drag_acc = (params.drag_lin + params.drag_quad * speed) * v / params.mass
     thrust_vec = drag_acc + np.array([0.0, 0.0, G])
-    f = float(np.linalg.norm(thrust_vec))
+    f = math.sqrt(thrust_vec.dot(thrust_vec))
     z = thrust_vec / f
-    x = np.asarray(heading_enu, float) - (np.asarray(heading_enu, float) @ z) * z
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
+    heading = np.asarray(heading_enu, float)
+    x = heading - heading.dot(z) * z
+    x /= math.sqrt(x.dot(x))
+    y = np.array(cross_xyz(z.tolist(), x.tolist()))
     return Rotation.from_matrix(np.column_stack((x, y, z))).as_quat(), f
 
 
