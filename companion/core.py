@@ -83,6 +83,8 @@ class CoreStep:
             refuse()
         elif self.reset_tracker and (reset := getattr(perception, "reset", None)) is not None:
             reset()
+        if (acquiring := getattr(perception, "acquiring", None)) is not None:
+            acquiring(self.decision.phase is Phase.ACQUIRE)  # other candidates weighed at full resolution
 
 
 @dataclass

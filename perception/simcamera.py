@@ -120,6 +120,9 @@ class RenderedCamera:
     def refuse(self) -> None:
         self.pipeline.refuse()
 
+    def acquiring(self, on: bool) -> None:
+        self.pipeline.acquiring(on)
+
     def render(
         self, p_enu: np.ndarray, R_enu_flu: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: float,
         t: float = 0.0,

@@ -71,6 +71,10 @@ class PipelinePerception:
         """Look past the object held (the app refused it as not the target)."""
         self.pipeline.refuse()
 
+    def acquiring(self, on: bool) -> None:
+        """The app is acquiring: weigh other candidates at full resolution (perception/pipeline.py)."""
+        self.pipeline.acquiring(on)
+
 
 class CameraFailed(RuntimeError):
     """The camera ended or reported an error (one line: which source, what)."""

@@ -104,6 +104,11 @@ class InjectedPerception:
         if refuse is not None:
             refuse()
 
+    def acquiring(self, on: bool) -> None:
+        acquiring = getattr(self.inner, "acquiring", None)
+        if acquiring is not None:
+            acquiring(on)
+
 
 class SyntheticScene:
     """Virtual gates in world ENU, anchored at the vehicle pose of the first frame."""
