@@ -46,7 +46,8 @@ class VerifyConfig(Section):
     rival: bool = Field(
         True, description="at ACQUIRE, a candidate is not engaged while another object in view (one that passes the "
         "cut, shape and range rules) is as likely the target: their mean detector confidences over the stable-track "
-        "streak within rival_margin (companion/rival.py); it is looked past so the other is judged alone")
+        "streak within rival_margin (companion/rival.py); it is looked past. With app.engage confirm only another "
+        "leading by rival_margin replaces the candidate shown (the operator judges two alike)")
     rival_margin: Number = Field(
         0.05, ge=0.0, le=1.0, description="rival: the candidate's mean confidence must exceed the best other "
         "candidate's by more than this")

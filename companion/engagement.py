@@ -349,7 +349,7 @@ class Engagement:
                                                f"refused {self.refused} frames in a row)"))
         if self.refuse_candidate:
             d = replace(d, events=(*d.events, "tracker told to look past its candidate (" + (
-                "another candidate in view is as likely the target)" if self._rival_refused
+                "another candidate in view is as likely the target or more)" if self._rival_refused
                 else f"refused {self.refused_candidate} frames in a row)")))
         return d
 
@@ -546,7 +546,7 @@ class Engagement:
                 self.rivals.reset()
             r = box.rival  # another object in view that could be the target too
             why = self.rivals.add(box.confidence, r.confidence if r is not None and verifier.may_be_candidate(r)
-                                  else 0.0)
+                                  else 0.0, operator=self._confirm is not None)
             if why:
                 self.rivals.reset()
                 self._rival_refused = True

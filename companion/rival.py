@@ -15,8 +15,9 @@ confidence (``BoundingBox.rival``, perception/pipeline.py; 0 in frames without o
 or range rules does not count) comes within ``margin`` of the mean of the candidate's own, the candidate is not
 engaged and perception is told to look past it (perception's ``refuse_time``). The other object then becomes the
 candidate. An object looked past still counts as another candidate, so the app engages only a candidate that leads
-every other in view: of two alike it engages neither and stays in ACQUIRE (in the field: the operator's
-confirmation decides, ``app.engage confirm``).
+every other in view: of two alike it engages neither and stays in ACQUIRE. With the operator's confirmation
+(``app.engage confirm``) the operator is the judge of two alike: there a candidate is looked past only when another
+leads it by more than ``margin`` (``add(..., operator=True)``), and the held one is shown.
 """
 
 from __future__ import annotations
@@ -35,14 +36,19 @@ class RivalWatch:
     def reset(self) -> None:
         self._seen: deque[tuple[float, float]] = deque(maxlen=self.frames)
 
-    def add(self, confidence: float, rival: float) -> str:
+    def add(self, confidence: float, rival: float, operator: bool = False) -> str:
         """"" while the candidate may be engaged; why not once its last ``frames`` frames say another candidate in
-        view is as likely the target."""
+        view is as likely the target (``operator``: an operator confirms; only one clearly more likely counts)."""
         self._seen.append((confidence, rival))
         if len(self._seen) < self.frames:
             return ""
         own = sum(c for c, _ in self._seen) / len(self._seen)
         other = sum(r for _, r in self._seen) / len(self._seen)
+        if operator:
+            if other <= own + self.margin:
+                return ""
+            return (f"another candidate in view is more likely the target (its confidence {other:.2f} against this "
+                    f"one's {own:.2f}, means over {len(self._seen)} frames; margin {self.margin:.2f})")
         if other < own - self.margin:
             return ""
         return (f"another candidate in view is as likely the target (its confidence {other:.2f} against this one's "

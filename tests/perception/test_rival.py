@@ -222,3 +222,37 @@ def test_the_core_engages_the_ring_and_not_the_arc_the_half_size_frame_rates_hig
             engaged = core.engagement.used_box
             break
     assert engaged is not None and engaged.w < 60 and abs(engaged.cx - 302.0) < 5
+
+
+def _await(script: list[list[BoundingBox]], frames: int) -> tuple[Pipeline, list]:
+    """app.engage confirm, the operator not (yet) confirming: what the app shows for confirmation."""
+    cfg = load_config([], [])
+    core = FlightCore.from_config(cfg)
+    p = _pipe(script, cfg)
+    shown = []
+    for k in range(frames):
+        b = p.process(FRAME, k * DT)
+        step = core.step(FrameInput(k * DT, b, LEVEL, 10.0, confirm=False))
+        step.tell_tracker(p)
+        if core.engagement.awaiting:
+            shown.append((k, core.engagement.used_box))
+    return p, shown
+
+
+def test_with_an_operator_two_alike_are_shown_not_refused() -> None:
+    # The operator judges two alike: the held one (the ring, seen first) waits for the confirmation.
+    script = [[gate(k)] for k in range(3)] + [[gate(k), clutter(0.62)] for k in range(3, 60)]
+    p, shown = _await(script, 60)
+    assert p.stats.refusals == 0 and shown and shown[0][0] <= 12
+    assert all(b is not None and b.w < 60 for _, b in shown)
+
+
+def test_with_an_operator_a_clearly_more_likely_other_is_shown_instead() -> None:
+    # The background box held, the ring rated 0.15 higher from frame 3: the box is shown until the streak's means say
+    # the ring is more likely (the window still holds frames without it), then the operator is shown the ring.
+    script = [[clutter(0.5)] for _ in range(3)] + [[clutter(0.5), gate(k)] for k in range(3, 90)]
+    p, shown = _await(script, 90)
+    assert p.stats.refusals == 1 and shown
+    ring = [k for k, b in shown if b is not None and b.w < 60]
+    other = [k for k, b in shown if b is None or b.w >= 60]
+    assert ring and ring[-1] == 89 and (not other or max(other) < min(ring))
