@@ -124,8 +124,8 @@ class TargetVerifier:
         cut = self._cut(box, p.edge_px)
         if acquiring and not p.acquire_cut and self._cut(box, self.acquire_edge_px()):
             return ("cut", f"box {box.w:.0f}x{box.h:.0f} px at ({box.cx:.0f}, {box.cy:.0f}) is cut by the "
-                                   f"image border (an edge within {self.acquire_edge_px():.0f} px of it): its shape "
-                                   "and size cannot be checked")
+                           f"image border (an edge within {self.acquire_edge_px():.0f} px of it): its shape "
+                           "and size cannot be checked")
         if not cut and p.max_view_angle > 0.0 and small < math.cos(p.max_view_angle) * size:
             return ("shape", f"box {box.w:.0f}x{box.h:.0f} px: no ring seen within "
                              f"{math.degrees(p.max_view_angle):.0f} deg of its axis is that narrow")

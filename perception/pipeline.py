@@ -560,8 +560,7 @@ class Pipeline:
         """``b`` as the detector sees it in a full-resolution crop around it, when it is small enough to zoom on
         (``zoom_below``): the detector sees the frame at half size, where a 40 px ring 25 m away scored 0.51-0.55
         against a 180 px clutter arc's 0.75 (real PX4 SIH, 2026-12-07, seed 3 run003) and 0.94-0.97 in a crop. The
-        held box is zoomed on as a track up to ``zoom_track_below`` already. Unchanged when the crop does not show
-        it again; None never (the frame's detection stands)."""
+        held box, when small, is detected in a crop already. ``b`` itself when the crop does not show it again."""
         if frame.shape[0] != self.height or frame.shape[1] != self.width:
             return b
         crop = zoom_crop(b, self.width, self.height, self.det.input_hw, self.pc.zoom_below)
