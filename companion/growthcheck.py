@@ -39,6 +39,7 @@ from perception.los import CameraModel, los_world
 from perception.types import BoundingBox
 
 G = 9.81
+_GRAVITY_NED = np.array([0.0, 0.0, G])  # m/s^2, added back to the accelerometer's specific force (world NED)
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,6 +82,7 @@ class GrowthCheck:
         self._a_prev: np.ndarray | None = None
         self._l: np.ndarray | None = None  # NED unit LOS of the last box
         self._rows: list[tuple[float, float, float]] = []  # (t - t0, range the box says, S) of uncut boxes
+        self._s_min = math.inf  # the least S of the rows (what "pushed" counts from)
         self.failed = ""
         self.scale: tuple[float, float] | None = None  # the last (k_static, k_moving) judged (diagnostics)
 
@@ -95,8 +97,9 @@ class GrowthCheck:
             self._l = los_world(self.camera, box.cx, box.cy, R_ned_frd)
         if self._l is None:
             return ""
-        a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float) + np.array([0.0, 0.0, G])
-        if not np.all(np.isfinite(a_ned)):
+        a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float)
+        a_ned += _GRAVITY_NED  # in place: the same sums as adding a new array (every frame)
+        if not np.isfinite(a_ned).all():
             return ""
         if self._t0 is None:
             self._t0 = self._t = t
@@ -124,15 +127,16 @@ class GrowthCheck:
             return ""
         d = 2.0 * p.focal_px * p.gate_radius / size
         self._rows.append((t - self._t0, d, self._s))
-        rows = np.array(self._rows)
-        pushed = self._s - float(rows[:, 2].min())
-        if len(rows) < p.min_samples or pushed < p.min_push:
+        self._s_min = min(self._s_min, self._s)
+        pushed = self._s - self._s_min
+        if len(self._rows) < p.min_samples or pushed < p.min_push:
             return ""
-        tau, dd, ss = rows.T
+        # Judged: the rows as an array only now (every frame, it grew with the engagement and was mostly unread).
+        tau, dd, ss = np.array(self._rows).T
         first, last = slice(0, 5), slice(-5, None)
         k_static = (float(np.median(dd[first])) - float(np.median(dd[last]))) / max(
             float(np.median(ss[last])) - float(np.median(ss[first])), 1e-6)
-        c, *_ = np.linalg.lstsq(np.c_[np.ones(len(rows)), tau, -ss], dd, rcond=None)
+        c, *_ = np.linalg.lstsq(np.c_[np.ones(len(tau)), tau, -ss], dd, rcond=None)
         k_moving = float(c[2])
         self.scale = (k_static, k_moving)
         k = max(k_static, k_moving)
