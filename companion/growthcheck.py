@@ -87,14 +87,16 @@ class GrowthCheck:
         self.scale: tuple[float, float] | None = None  # the last (k_static, k_moving) judged (diagnostics)
 
     def update(self, t: float, box: BoundingBox | None, R_ned_frd: np.ndarray,
-               accel_frd: np.ndarray | None) -> str:
+               accel_frd: np.ndarray | None, los_ned: np.ndarray | None = None) -> str:
+        """``los_ned``: the box's world LOS through this check's camera when the caller has it (the engagement
+        passes the target lock's, the same vector), else computed here."""
         if self.failed:
             return self.failed
         p = self.p
         if p.gate_radius <= 0.0 or accel_frd is None or not math.isfinite(t):
             return ""
         if box is not None:
-            self._l = los_world(self.camera, box.cx, box.cy, R_ned_frd)
+            self._l = los_world(self.camera, box.cx, box.cy, R_ned_frd) if los_ned is None else los_ned
         if self._l is None:
             return ""
         a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float)

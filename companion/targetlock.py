@@ -100,6 +100,11 @@ class TargetLock:
         self._recent: deque[tuple[float, float, float]] = deque()  # (t, size px, closing m/s), the last window_s
         self.rejected = 0
 
+    @property
+    def ref_los(self) -> np.ndarray | None:
+        """The world LOS (NED unit vector) of the last box that continued the target, None after a reset."""
+        return None if self._ref is None else self._ref[2]
+
     def closing_bound(self, closing: tuple[float, float] | None) -> float:
         """The largest closing speed (m/s) given the filter's (range rate, its std dev), or ``v_max`` without."""
         v_max = self.p.v_max
