@@ -79,7 +79,7 @@ class GrowthCheck:
         self._t: float | None = None
         self._v = np.zeros(3)  # m/s, velocity our own acceleration added since t0 (world NED)
         self._s = 0.0  # m, distance it moved us
-        self._a_prev: np.ndarray | None = None
+        self._a_prev: list[float] | None = None  # the last frame's a_ned, m/s^2
         self._l: np.ndarray | None = None  # NED unit LOS of the last box
         self._rows: list[tuple[float, float, float]] = []  # (t - t0, range the box says, S) of uncut boxes
         self._s_min = math.inf  # the least S of the rows (what "pushed" counts from)
@@ -101,21 +101,27 @@ class GrowthCheck:
             return ""
         a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float)
         a_ned += _GRAVITY_NED  # in place: the same sums as adding a new array (every frame)
-        if not np.isfinite(a_ned).all():
+        # The trapezoids' element-by-element arithmetic in floats (IEEE, the same as numpy's element by element);
+        # the velocity is an array again only for its products with the LOS (numpy's dot, kept).
+        a = ax, ay, az = a_ned.tolist()
+        isf = math.isfinite
+        if not (isf(ax) and isf(ay) and isf(az)):
             return ""
         if self._t0 is None:
             self._t0 = self._t = t
-            self._a_prev = a_ned
+            self._a_prev = a
         else:
             assert self._t is not None and self._a_prev is not None
             dt = t - self._t
             if not (0.0 < dt <= p.max_dt):
-                self._t, self._a_prev = t, a_ned  # a gap: not integrated across (S is then an under-estimate)
+                self._t, self._a_prev = t, a  # a gap: not integrated across (S is then an under-estimate)
                 return ""
-            v0 = float(self._v @ self._l)
-            self._v = self._v + 0.5 * (self._a_prev + a_ned) * dt  # trapezoids: velocity (world), then distance
-            self._s += 0.5 * (v0 + float(self._v @ self._l)) * dt  # along the LOS (without a box: the last one)
-            self._t, self._a_prev = t, a_ned
+            v0 = float(self._v.dot(self._l))
+            (vx, vy, vz), (px, py, pz) = self._v.tolist(), self._a_prev
+            # trapezoids: velocity (world), then distance along the LOS (without a box: the last one)
+            self._v = np.array((vx + 0.5 * (px + ax) * dt, vy + 0.5 * (py + ay) * dt, vz + 0.5 * (pz + az) * dt))
+            self._s += 0.5 * (v0 + float(self._v.dot(self._l))) * dt
+            self._t, self._a_prev = t, a
         if box is None:
             return ""
         x0, y0, x1, y1 = box.xyxy
