@@ -216,7 +216,7 @@ class Engagement:
     _t_phase: float = 0.0  # when the current phase began
     _engage_start: float = 0.0
     _last_valid: float = 0.0
-    _los_enu: np.ndarray | None = None  # the last filtered LOS of the engagement (ENU)
+    _los_ned: np.ndarray | None = None  # the last filtered LOS of the engagement (NED; ENU when read: _los_enu)
     _sp: Setpoint | None = None  # the held setpoint of PASS / RECOVER
     _peak: float = 0.0  # largest box side during the pass, px
     _gone: int = 0  # frames of "gate behind" evidence
@@ -422,7 +422,7 @@ class Engagement:
                 self.lock.check(t, box, self.frame_attitude())  # the engaged box is the first reference
         self._rejecting = False
         self._engage_start = self._last_valid = t
-        self._los_enu = None
+        self._los_ned = None
         self.passes.append(GatePass(len(self.passes) + 1, t))
         self._go(Phase.ENGAGE, t)
         out = self.controller.step(t, box, q, *self._imu)
@@ -628,7 +628,13 @@ class Engagement:
     def _note_los(self, out: object) -> None:
         los = getattr(out, "los_ned", None)
         if los is not None:
-            self._los_enu = swap_ned_enu(np.asarray(los, dtype=float))
+            self._los_ned = los
+
+    @property
+    def _los_enu(self) -> np.ndarray | None:
+        """The last filtered LOS of the engagement (ENU), None before one: converted when read (the pass, the
+        pull-up), not every frame."""
+        return None if self._los_ned is None else swap_ned_enu(np.asarray(self._los_ned, dtype=float))
 
     def _thrust_model(self) -> tuple[float, float, float, float]:
         """(hover thrust, thrust_min, f_min, f_max): the controller's current numbers when it has them (the app
