@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.engagement import Decision, Engagement, EngagementParams, LinkEvent, Phase, Steering
-from companion.frames import R_from_quat_wxyz
 from companion.hover import HoverEstimate, HoverThrustEstimator, thrust_specific_force, use_hover_thrust
 from perception.fastinit import fast_init
 from perception.types import BoundingBox
@@ -133,7 +132,7 @@ class FlightCore:
             a_up = None
             if inp.imu is not None and self.hover_estimator is not None:
                 # The frame's attitude (capture time) with the newest IMU sample: the tilt moves little between.
-                a_up = thrust_specific_force(inp.imu.accel_frd, R_from_quat_wxyz(inp.q_wxyz_ned_frd), self.cfg.hover)
+                a_up = thrust_specific_force(inp.imu.accel_frd, self.engagement.frame_attitude(), self.cfg.hover)
                 if self._hover_u is not None:
                     hover_input = (self._hover_u, a_up)
             hover = self._hover_update(inp.imu, d.setpoint.thrust, a_up)

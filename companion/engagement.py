@@ -216,7 +216,7 @@ class Engagement:
     _t_phase: float = 0.0  # when the current phase began
     _engage_start: float = 0.0
     _last_valid: float = 0.0
-    _los_enu: np.ndarray | None = None  # the last filtered LOS of the engagement (ENU)
+    _los_ned: np.ndarray | None = None  # the last filtered LOS of the engagement (NED; ENU when read: _los_enu)
     _sp: Setpoint | None = None  # the held setpoint of PASS / RECOVER
     _peak: float = 0.0  # largest box side during the pass, px
     _gone: int = 0  # frames of "gate behind" evidence
@@ -247,6 +247,10 @@ class Engagement:
     # refuses is looked past at once (refuse_candidate), not after drop_tracker_after refusals.
     rivals: RivalWatch | None = None
     _rival_refused: bool = False
+    # This step's attitude estimate, and its matrix once a check has needed it (``frame_attitude``): the lock, the
+    # growth check, the pull-up and the core's hover estimate use one matrix a frame, not one each.
+    _q: np.ndarray | None = None
+    _R: np.ndarray | None = None
 
     @classmethod
     def from_config(cls, cfg: Config, controller: Steering, params: EngagementParams | None = None) -> Engagement:
@@ -284,13 +288,15 @@ class Engagement:
         None: not needed, app.engage auto)."""
         self._imu = (accel_frd, t_now)
         self._confirm = confirm
+        self._q, self._R = q_wxyz_ned_frd, None
         if self._t0 is None:
             self._t0 = self._t_phase = t
         p = self.params
         valid = box is not None and box.is_valid(p.width, p.height)
         if valid and p.complete_boxes:
             whole = complete_clipped_box(box, p.width, p.height, p.cut_edge_px)
-            box = whole if whole.is_valid(p.width, p.height) else box
+            if whole is not box and whole.is_valid(p.width, p.height):  # (not cut: the same box, already valid)
+                box = whole
         lock_event = ""
         self._rejected_now = False
         self._refused_as_target = False
@@ -304,10 +310,13 @@ class Engagement:
                                   else f"candidate rejected, {why}")
                 valid, box, self._rejected_now = False, None, True
             self._unverified = bool(why)
+        los = None  # the box's world LOS when the lock computed it, for the growth check (one camera model)
         if valid and self.phase is Phase.ENGAGE and self.lock is not None:
             assert box is not None
-            chk = self.lock.check(t, box, R_from_quat_wxyz(q_wxyz_ned_frd), self.controller.closing_rate)
-            if not chk.ok:
+            chk = self.lock.check(t, box, self.frame_attitude(), self.controller.closing_rate)
+            if chk.ok:
+                los = self.lock.ref_los
+            else:
                 # Another object's box: for every decision below, no box at all (the controller coasts, the
                 # target-lost clock runs, the close detector does not see it).
                 if not self._rejecting:
@@ -315,7 +324,10 @@ class Engagement:
                 valid, box, self._rejected_now = False, None, True
             self._rejecting = not chk.ok
         if self.phase is Phase.ENGAGE and self.growth is not None and self._imu[0] is not None:
-            why = self.growth.update(t, box if valid else None, R_from_quat_wxyz(q_wxyz_ned_frd), self._imu[0])
+            if los is not None and self.growth.camera is not self.lock.camera:  # type: ignore[union-attr]
+                los = None
+            why = self.growth.update(t, box if valid else None, self.frame_attitude(), self._imu[0],
+                                     los if valid else None)
             if why and valid:
                 # Not the ring its size says: no box from here on (coast, then TARGET_LOST), never a pass.
                 if not self._growth_said:
@@ -407,10 +419,10 @@ class Engagement:
         if self.lock is not None:
             self.lock.reset()
             if box is not None:
-                self.lock.check(t, box, R_from_quat_wxyz(q))  # the engaged box is the first reference
+                self.lock.check(t, box, self.frame_attitude())  # the engaged box is the first reference
         self._rejecting = False
         self._engage_start = self._last_valid = t
-        self._los_enu = None
+        self._los_ned = None
         self.passes.append(GatePass(len(self.passes) + 1, t))
         self._go(Phase.ENGAGE, t)
         out = self.controller.step(t, box, q, *self._imu)
@@ -503,7 +515,7 @@ class Engagement:
                 self._streak = 1 if valid else 0
         if self.pullup is not None and self.pullup.fired is not None and p.on_close == "pull_up":
             # The planned pull-up (full thrust, tilted back) until it is flown, then level at recover thrust.
-            yaw = euler_ned_deg_from_R(R_from_quat_wxyz(q))[2]
+            yaw = euler_ned_deg_from_R(self.frame_attitude())[2]
             planned = self.pullup.setpoint(t, yaw, self._thrust_model()[0])
             if planned is not None:
                 return Decision(t, Phase.RECOVER, planned)
@@ -538,7 +550,7 @@ class Engagement:
         if acquiring and self.lock is not None:
             if self._streak == 0:
                 self.lock.reset()
-            chk = self.lock.check(t, box, R_from_quat_wxyz(q))
+            chk = self.lock.check(t, box, self.frame_attitude())
             if not chk.ok:
                 return f"not one object: {chk.why.removeprefix('not the engaged gate: ')}"
         if acquiring and self.rivals is not None:
@@ -591,6 +603,16 @@ class Engagement:
         return (f"time-to-contact {ttc:.2f} s to {p.reckon_range:.2f} m of the gate's centre, dead-reckoned with the "
                 f"IMU (range {d:.2f} m; no range from the image for {t - t_range:.2f} s; closing at {-d_dot:.1f} m/s)")
 
+    def frame_attitude(self) -> np.ndarray:
+        """The attitude matrix (NED <- FRD) of the frame being stepped, built once a frame: the checks that need it
+        (the target lock, the growth check, the pull-up's yaw, the flight core's hover estimate) share it and
+        read it only."""
+        if self._R is None:
+            if self._q is None:
+                raise RuntimeError("no frame stepped yet")
+            self._R = R_from_quat_wxyz(self._q)
+        return self._R
+
     def _go(self, phase: Phase, t: float) -> None:
         self.phase = phase
         self._t_phase = t
@@ -606,7 +628,13 @@ class Engagement:
     def _note_los(self, out: object) -> None:
         los = getattr(out, "los_ned", None)
         if los is not None:
-            self._los_enu = swap_ned_enu(np.asarray(los, dtype=float))
+            self._los_ned = los
+
+    @property
+    def _los_enu(self) -> np.ndarray | None:
+        """The last filtered LOS of the engagement (ENU), None before one: converted when read (the pass, the
+        pull-up), not every frame."""
+        return None if self._los_ned is None else swap_ned_enu(np.asarray(self._los_ned, dtype=float))
 
     def _thrust_model(self) -> tuple[float, float, float, float]:
         """(hover thrust, thrust_min, f_min, f_max): the controller's current numbers when it has them (the app

@@ -39,6 +39,7 @@ from perception.los import CameraModel, los_world
 from perception.types import BoundingBox
 
 G = 9.81
+_GRAVITY_NED = np.array([0.0, 0.0, G])  # m/s^2, added back to the accelerometer's specific force (world NED)
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,39 +79,49 @@ class GrowthCheck:
         self._t: float | None = None
         self._v = np.zeros(3)  # m/s, velocity our own acceleration added since t0 (world NED)
         self._s = 0.0  # m, distance it moved us
-        self._a_prev: np.ndarray | None = None
+        self._a_prev: list[float] | None = None  # the last frame's a_ned, m/s^2
         self._l: np.ndarray | None = None  # NED unit LOS of the last box
         self._rows: list[tuple[float, float, float]] = []  # (t - t0, range the box says, S) of uncut boxes
+        self._s_min = math.inf  # the least S of the rows (what "pushed" counts from)
         self.failed = ""
         self.scale: tuple[float, float] | None = None  # the last (k_static, k_moving) judged (diagnostics)
 
     def update(self, t: float, box: BoundingBox | None, R_ned_frd: np.ndarray,
-               accel_frd: np.ndarray | None) -> str:
+               accel_frd: np.ndarray | None, los_ned: np.ndarray | None = None) -> str:
+        """``los_ned``: the box's world LOS through this check's camera when the caller has it (the engagement
+        passes the target lock's, the same vector), else computed here."""
         if self.failed:
             return self.failed
         p = self.p
         if p.gate_radius <= 0.0 or accel_frd is None or not math.isfinite(t):
             return ""
         if box is not None:
-            self._l = los_world(self.camera, box.cx, box.cy, R_ned_frd)
+            self._l = los_world(self.camera, box.cx, box.cy, R_ned_frd) if los_ned is None else los_ned
         if self._l is None:
             return ""
-        a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float) + np.array([0.0, 0.0, G])
-        if not np.all(np.isfinite(a_ned)):
+        a_ned = R_ned_frd @ np.asarray(accel_frd, dtype=float)
+        a_ned += _GRAVITY_NED  # in place: the same sums as adding a new array (every frame)
+        # The trapezoids' element-by-element arithmetic in floats (IEEE, the same as numpy's element by element);
+        # the velocity is an array again only for its products with the LOS (numpy's dot, kept).
+        a = ax, ay, az = a_ned.tolist()
+        isf = math.isfinite
+        if not (isf(ax) and isf(ay) and isf(az)):
             return ""
         if self._t0 is None:
             self._t0 = self._t = t
-            self._a_prev = a_ned
+            self._a_prev = a
         else:
             assert self._t is not None and self._a_prev is not None
             dt = t - self._t
             if not (0.0 < dt <= p.max_dt):
-                self._t, self._a_prev = t, a_ned  # a gap: not integrated across (S is then an under-estimate)
+                self._t, self._a_prev = t, a  # a gap: not integrated across (S is then an under-estimate)
                 return ""
-            v0 = float(self._v @ self._l)
-            self._v = self._v + 0.5 * (self._a_prev + a_ned) * dt  # trapezoids: velocity (world), then distance
-            self._s += 0.5 * (v0 + float(self._v @ self._l)) * dt  # along the LOS (without a box: the last one)
-            self._t, self._a_prev = t, a_ned
+            v0 = float(self._v.dot(self._l))
+            (vx, vy, vz), (px, py, pz) = self._v.tolist(), self._a_prev
+            # trapezoids: velocity (world), then distance along the LOS (without a box: the last one)
+            self._v = np.array((vx + 0.5 * (px + ax) * dt, vy + 0.5 * (py + ay) * dt, vz + 0.5 * (pz + az) * dt))
+            self._s += 0.5 * (v0 + float(self._v.dot(self._l))) * dt
+            self._t, self._a_prev = t, a
         if box is None:
             return ""
         x0, y0, x1, y1 = box.xyxy
@@ -124,15 +135,16 @@ class GrowthCheck:
             return ""
         d = 2.0 * p.focal_px * p.gate_radius / size
         self._rows.append((t - self._t0, d, self._s))
-        rows = np.array(self._rows)
-        pushed = self._s - float(rows[:, 2].min())
-        if len(rows) < p.min_samples or pushed < p.min_push:
+        self._s_min = min(self._s_min, self._s)
+        pushed = self._s - self._s_min
+        if len(self._rows) < p.min_samples or pushed < p.min_push:
             return ""
-        tau, dd, ss = rows.T
+        # Judged: the rows as an array only now (every frame, it grew with the engagement and was mostly unread).
+        tau, dd, ss = np.array(self._rows).T
         first, last = slice(0, 5), slice(-5, None)
         k_static = (float(np.median(dd[first])) - float(np.median(dd[last]))) / max(
             float(np.median(ss[last])) - float(np.median(ss[first])), 1e-6)
-        c, *_ = np.linalg.lstsq(np.c_[np.ones(len(rows)), tau, -ss], dd, rcond=None)
+        c, *_ = np.linalg.lstsq(np.c_[np.ones(len(tau)), tau, -ss], dd, rcond=None)
         k_moving = float(c[2])
         self.scale = (k_static, k_moving)
         k = max(k_static, k_moving)

@@ -176,13 +176,14 @@ class SafetyLimits:
         t = np.fromiter(bt, float, n)
         h = np.fromiter(bh, float, n)
         # Every frame: ndarray.mean's Python wrapper costs more than its sum; add.reduce / n is the same float
-        # (the mean is np.add.reduce(a) / a.size), and h's mean is computed once instead of twice.
-        t_mean = float(_sum(t) / n)
-        h_mean = _sum(h) / n
+        # (the mean is np.add.reduce(a) / a.size), and h's mean is computed once instead of twice. The division
+        # on Python floats: the same IEEE division as numpy's scalar one, without its scalar objects.
+        t_mean = float(_sum(t)) / n
+        h_mean = float(_sum(h)) / n
         t = t - t_mean
         rate = float(t.dot(h - h_mean)) / float(t.dot(t))
         self.climb_rate = rate
-        now_fit = float(h_mean) + rate * (now - t_mean)  # the fitted altitude now: less noisy than one sample
+        now_fit = h_mean + rate * (now - t_mean)  # the fitted altitude now: less noisy than one sample
         if arrest is not None:
             ahead = now_fit - arrest(rate)
             if ahead < c.altitude_floor:

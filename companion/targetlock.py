@@ -77,6 +77,9 @@ class LockCheck:
     why: str = ""
 
 
+_OK = LockCheck(True)  # every accepted box's check (immutable): one object, not one a frame
+
+
 class TargetLock:
     """``check(t, box, R_ned_frd)`` per frame of an engagement; ``reset()`` when a new target is engaged."""
 
@@ -99,6 +102,11 @@ class TargetLock:
         self._ref: tuple[float, float, np.ndarray, float] | None = None  # (t, size px, world LOS, closing m/s)
         self._recent: deque[tuple[float, float, float]] = deque()  # (t, size px, closing m/s), the last window_s
         self.rejected = 0
+
+    @property
+    def ref_los(self) -> np.ndarray | None:
+        """The world LOS (NED unit vector) of the last box that continued the target, None after a reset."""
+        return None if self._ref is None else self._ref[2]
 
     def closing_bound(self, closing: tuple[float, float] | None) -> float:
         """The largest closing speed (m/s) given the filter's (range rate, its std dev), or ``v_max`` without."""
@@ -146,7 +154,7 @@ class TargetLock:
         if self._ref is None:
             self._ref = (t, size, los, v_now)
             self._remember(t, box, size, v_now)
-            return LockCheck(True)
+            return _OK
         recent = self._recent
         while recent and t - recent[0][0] > self.p.window_s:
             recent.popleft()
@@ -184,7 +192,7 @@ class TargetLock:
                                 f"(at most {math.degrees(a_max):.0f} deg)")
         self._ref = (t, size, los, v_now)
         self._remember(t, box, size, v_now)
-        return LockCheck(True)
+        return _OK
 
     def _remember(self, t: float, box: BoundingBox, size: float, v: float) -> None:
         """A box that continued the target, for the window's growth bound; not one the image border cuts (the ring

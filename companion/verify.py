@@ -90,8 +90,9 @@ class TargetVerifier:
         a = getattr(box, "appearance", None)
         self._ref_app = None if a is None else np.asarray(a, dtype=float)
 
-    def _cut(self, box: BoundingBox, e: float) -> bool:
-        x0, y0, x1, y1 = box.xyxy
+    def _cut(self, xyxy: tuple[float, float, float, float], e: float) -> bool:
+        """Is a box (its corners, ``BoundingBox.xyxy``) within ``e`` px of the image border?"""
+        x0, y0, x1, y1 = xyxy
         return x0 <= e or y0 <= e or x1 >= self.p.width - e or y1 >= self.p.height - e
 
     def acquire_edge_px(self) -> float:
@@ -121,8 +122,9 @@ class TargetVerifier:
         """The rules that judge one box alone: (rule, why) of the first it fails, None when it passes."""
         p = self.p
         size, small = max(box.w, box.h), min(box.w, box.h)
-        cut = self._cut(box, p.edge_px)
-        if acquiring and not p.acquire_cut and self._cut(box, self.acquire_edge_px()):
+        xyxy = box.xyxy  # the corners once for both border tests
+        cut = self._cut(xyxy, p.edge_px)
+        if acquiring and not p.acquire_cut and self._cut(xyxy, self.acquire_edge_px()):
             return ("cut", f"box {box.w:.0f}x{box.h:.0f} px at ({box.cx:.0f}, {box.cy:.0f}) is cut by the "
                            f"image border (an edge within {self.acquire_edge_px():.0f} px of it): its shape "
                            "and size cannot be checked")
