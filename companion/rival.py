@@ -44,12 +44,9 @@ class RivalWatch:
             return ""
         own = sum(c for c, _ in self._seen) / len(self._seen)
         other = sum(r for _, r in self._seen) / len(self._seen)
-        if operator:
-            if other <= own + self.margin:
-                return ""
-            return (f"another candidate in view is more likely the target (its confidence {other:.2f} against this "
-                    f"one's {own:.2f}, means over {len(self._seen)} frames; margin {self.margin:.2f})")
-        if other < own - self.margin:
+        # Without an operator the candidate must lead by the margin; with one, only another leading by it refuses.
+        if not (other > own + self.margin if operator else other >= own - self.margin):
             return ""
-        return (f"another candidate in view is as likely the target (its confidence {other:.2f} against this one's "
+        how = "more likely" if operator else "as likely"
+        return (f"another candidate in view is {how} the target (its confidence {other:.2f} against this one's "
                 f"{own:.2f}, means over {len(self._seen)} frames; margin {self.margin:.2f})")
