@@ -51,6 +51,11 @@ class VerifyConfig(Section):
     rival_margin: Number = Field(
         0.05, ge=0.0, le=1.0, description="rival: the candidate's mean confidence must exceed the best other "
         "candidate's by more than this")
+    rival_engaged_frames: int = Field(
+        2, ge=0, le=100, description="rival while engaged: the engaged box counts as no box (and is looked past) "
+        "once another candidate at most half its size, passing the cut, shape and range rules, has had a confidence "
+        "more than rival_margin above it in this many frames in a row (a detector seeing the frame at half size rates "
+        "a smaller object lower, not higher: the box has merged with background; companion/rival.py). 0 = off")
     min_similarity: Number = Field(
         0.0, ge=0.0, le=1.0, description="appearance (hue-saturation histogram of the box, Bhattacharyya "
         "coefficient) against the box the track began with; below it is another object (0 = off)")

@@ -266,7 +266,8 @@ class Engagement:
             if cfg.app.verify.growth:
                 eng.growth = GrowthCheck(GrowthParams.from_config(cfg), camera_model(cfg.camera))
             if cfg.app.verify.rival:
-                eng.rivals = RivalWatch(float(cfg.app.verify.rival_margin), params.acquire_frames)
+                eng.rivals = RivalWatch(float(cfg.app.verify.rival_margin), params.acquire_frames,
+                                        int(cfg.app.verify.rival_engaged_frames))
         if params.on_close == "pull_up":
             eng.pullup = PullUpPlanner(PullUpParams.from_config(cfg, f_max=params.f_max), camera_model(cfg.camera))
         return eng
@@ -416,6 +417,8 @@ class Engagement:
         if self.growth is not None:
             self.growth.reset()
             self._growth_said = False
+        if self.rivals is not None:
+            self.rivals.reset()
         if self.lock is not None:
             self.lock.reset()
             if box is not None:
@@ -562,6 +565,15 @@ class Engagement:
             if why:
                 self.rivals.reset()
                 self._rival_refused = True
+                return why
+        elif self.rivals is not None and self.phase is Phase.ENGAGE:
+            r = box.rival
+            why = self.rivals.engaged(box, r if r is not None and verifier.may_be_candidate(r, False) else None)
+            if why:
+                self._rival_refused = True  # looked past: the other candidate may be tracked, the lock judges it
+                # The sizes it measured were not the ring's: no time-to-contact, no "near" from them (its loss
+                # is not the pass begun).
+                self.close.reset()
                 return why
         return ""
 

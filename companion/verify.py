@@ -113,10 +113,11 @@ class TargetVerifier:
                                               f"(< {p.min_similarity:.2f})")
         return ""
 
-    def may_be_candidate(self, box: BoundingBox) -> bool:
-        """Would ``box`` pass the rules of one box at ACQUIRE (cut, shape, range)? For another object in view
+    def may_be_candidate(self, box: BoundingBox, acquiring: bool = True) -> bool:
+        """Would ``box`` pass the rules of one box (cut, shape, range) at ACQUIRE, or while engaged (``acquiring``
+        False: only an edge within ``edge_px`` of the border is cut)? For another object in view
         (companion/rival.py): not counted among the rejections, no appearance reference."""
-        return self._box_rules(box, True) is None
+        return self._box_rules(box, acquiring) is None
 
     def _box_rules(self, box: BoundingBox, acquiring: bool) -> tuple[str, str] | None:
         """The rules that judge one box alone: (rule, why) of the first it fails, None when it passes."""

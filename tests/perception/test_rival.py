@@ -256,3 +256,68 @@ def test_with_an_operator_a_clearly_more_likely_other_is_shown_instead() -> None
     ring = [k for k, b in shown if b is not None and b.w < 60]
     other = [k for k, b in shown if b is None or b.w >= 60]
     assert ring and ring[-1] == 89 and (not other or max(other) < min(ring))
+
+
+# -- while engaged: a smaller candidate rated higher than the engaged box -------------------------------------
+
+
+def test_the_engaged_rule_against_a_direct_computation() -> None:
+    w = RivalWatch(margin=0.05, frames=10, engaged_frames=2)
+    held = BoundingBox(240.0, 250.0, 320.0, 460.0, 0.36)
+    small = BoundingBox(400.0, 80.0, 100.0, 130.0, 0.42)  # 0.42 > 0.36 + 0.05, 130 px <= 0.5 x 460 px
+    assert small.confidence > held.confidence + 0.05 and max(small.w, small.h) <= 0.5 * max(held.w, held.h)
+    assert w.engaged(held, small) == ""  # one frame is not yet a lead
+    why = w.engaged(held, small)
+    assert why.startswith("another candidate in view, at most half this box's size (130 px against 460 px), is more "
+                          "likely the target: its confidence 0.42 against this one's 0.36, 2 frames in a row")
+    assert w.engaged(held, None) == "" and w.engaged(held, small) == ""  # a frame without it starts again
+    # More than half its size, or not leading by more than the margin: never (near the gate two boxes of about one
+    # size can be two parts of one ring; at half size a larger object is rated higher anyway).
+    large = BoundingBox(400.0, 240.0, 200.0, 231.0, 0.9)  # 231 px > 230 px
+    level = BoundingBox(400.0, 80.0, 100.0, 130.0, 0.41)  # 0.41 <= 0.36 + 0.05
+    assert [w.engaged(held, large) for _ in range(5)] == [""] * 5
+    assert [w.engaged(held, level) for _ in range(5)] == [""] * 5
+    assert [RivalWatch(0.05, 10, engaged_frames=0).engaged(held, small) for _ in range(5)] == [""] * 5
+
+
+def _approach_then_merge(k: int) -> list[BoundingBox]:
+    """Real PX4 SIH seed 3 run012 in outline: the engaged ring grows as the vehicle closes; from frame 40 its box
+    merges with background beside it (growing down and left, rated ever lower) while the ring itself, missed and
+    receding, is detected 130 px wide at the top right, rated higher; from frame 50 the merged box is gone."""
+    if k < 40:  # the ring, 60 px -> 200 px (a time-to-contact of ~1.7 s at the end)
+        s = 60.0 * 12.0 / (12.0 - 0.21 * k)
+        return [BoundingBox(320.0 + 0.5 * k, 240.0, s, s, 0.8)]
+    j = k - 40
+    out = []
+    if j < 10:  # the merged box: 220 px -> 420 px in 0.3 s, drifting down-left, 0.55 -> 0.28
+        s = 220.0 + 22.0 * j
+        out.append(BoundingBox(330.0 - 12.0 * j, 250.0 + 4.0 * j, 0.75 * s, s, 0.55 - 0.03 * j))
+    if j >= 3:  # the ring, receding at the top right
+        out.append(BoundingBox(480.0 + 2.0 * j, 100.0 - 1.0 * j, 110.0 - j, 130.0 - j, 0.45))
+    return out
+
+
+def _engagement_of(**sets: object) -> tuple[list, Pipeline]:
+    script = [_approach_then_merge(k) for k in range(75)]
+    _, p, log = _fly(script, 75, **sets)
+    return log, p
+
+
+def test_an_engaged_box_a_smaller_candidate_outrates_is_refused_and_no_pass_claimed() -> None:
+    log, p = _engagement_of()
+    events = [(k, e) for k, _, _, ev in log for e in ev]
+    engaged = [k for k, e in events if e == "gate 1 engaged"]
+    assert engaged and engaged[0] < 40  # the ring was engaged
+    refused = [k for k, e in events if "another candidate in view, at most half this box's size" in e]
+    # The merged box leads by less than the margin until frame 45 (0.40 vs 0.45), by more from 46 on.
+    assert refused and refused[0] == 47  # the second frame in a row
+    assert not any(e.endswith(" close") or "passed" in e for _, e in events)
+    assert p.stats.refusals >= 1  # perception was told to look past the merged box
+    assert all(b is None or b.cx > 400 for k, _, b, _ in log if k >= 47)  # never the merged box again
+
+
+def test_without_the_engaged_rule_the_merged_box_is_taken_for_the_ring_come_near() -> None:
+    log, _ = _engagement_of(**{"app.verify.rival_engaged_frames": "0"})
+    events = [e for _, _, _, ev in log for e in ev]
+    # Its growth reads as a time-to-contact: the pass begins while the ring, missed, is still seen ahead.
+    assert "gate 1 close" in events and any(ph is Phase.PASS for _, ph, _, _ in log)
