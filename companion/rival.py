@@ -23,12 +23,12 @@ While engaged (``engaged``): on real PX4 (SIH quad, linear-fast gate, 2026-12-07
 a receding ring by its side; the tracker's box, 300-480 px, merged with background below it and grew away from the
 ring, and its growth read as a time-to-contact: "gate passed" beside the ring, which the detector still saw, 100 px
 wide, rated 0.42-0.49 against the merged box's 0.27-0.36. The detector sees the frame at half size, where a smaller
-object scores lower, not higher: in 100 PX4 flights (SIH seed 3, x500 seed 4) every frame in which another candidate
-led the engaged ring by more than the margin (39) was one with a larger other candidate (a clutter arc beside a
-44-141 px ring). So a candidate at most half the engaged box's size (``SMALLER``) leading it by more than
-``margin`` for ``engaged_frames`` frames in a row says the box is no longer the ring: it counts as no box (coast;
-no close, no pass) and perception looks past it, so the other candidate may be tracked and the target lock judges
-whether it continues the gate.
+object scores lower, not higher: in 100 PX4 flights (SIH seed 3, x500 seed 4) another candidate led the engaged
+ring by more than the margin in 55 frames, never one at most half the ring's size (clutter arcs beside 44-141 px
+rings); it led a wrong box in 6, 3 of them at most half its size. So a candidate at most half the engaged box's
+size (``SMALLER``) leading it by more than ``margin`` for ``engaged_frames`` frames in a row says the box is no
+longer the ring: it counts as no box (coast; no close, no pass; its size history dropped) and perception looks past
+it, so the other candidate may be tracked and the target lock judges whether it continues the gate.
 """
 
 from __future__ import annotations
