@@ -384,7 +384,9 @@ class FlightApp(Monitors, SafeEnds):
             step.tell_tracker(self.perception)  # not to hold on to (or coast) a passed gate or a refused candidate
             self._note_hover(step)
             if self._live is not None:  # never waits: a copy into shared memory only when the view wants one
-                self._live.offer(frame.image, ViewInfo(box, d.phase.value, core.engagement.awaiting, d.why))
+                # the rival too: an operator asked to confirm sees what else in view competes with the candidate
+                self._live.offer(frame.image, ViewInfo(box, d.phase.value, core.engagement.awaiting, d.why,
+                                                       getattr(box, "rival", None)))
             if await self._apply(frame, step, t_avail):
                 return
 

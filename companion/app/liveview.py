@@ -4,8 +4,10 @@
     http://ADDRESS:PORT/stream      multipart/x-mixed-replace JPEG stream (VLC: open the network stream)
     http://ADDRESS:PORT/frame.jpg   the newest annotated frame
 
-What it shows: the tracked box (green while engaged, yellow for a candidate awaiting the operator's
-confirmation, grey otherwise), the engagement's phase, the track state and the last event.
+What it shows: the tracked box with its detector confidence (green while engaged, yellow for a candidate awaiting
+the operator's confirmation, grey otherwise); the frame's most confident other candidate (``BoundingBox.rival``:
+dashed magenta, "other 0.42"), so an operator asked to confirm sees what competes with the candidate; the
+engagement's phase, the track state and the last event.
 
 Why its cost to the flight is bounded: drawing, JPEG encoding and every client run in a separate process
 (companion/app/liveview_proc.py) at a lower CPU priority (``os.nice``), so they never take the flight process's
@@ -20,6 +22,7 @@ Any failure of the view (port taken, the process dies) logs one line and the fli
 from __future__ import annotations
 
 import contextlib
+import math
 import mmap
 import os
 import shutil
@@ -40,8 +43,15 @@ PAGE = (b"<!doctype html><html><head><title>companion live view</title></head>"
 
 # The shared frame slot: byte 0 the state, then the header, then the pixels at DATA.
 IDLE, WANT, READY = 0, 1, 2
-HEADER = struct.Struct("<QIIIBB4d32s256s")  # seq, h, w, channels, has box, awaiting, x0 y0 x1 y1, phase, text
+# version, seq, h, w, channels, has box, awaiting, has rival, box x0 y0 x1 y1 confidence, rival x0 y0 x1 y1
+# confidence, phase, text. The version leads so that a view reading a header it does not know stops with one line
+# (the flight flies on) rather than drawing garbage; bump it with any change of this layout.
+HEADER_VERSION = 2
+HEADER = struct.Struct("<BQIIIBBB5d5d32s256s")
 DATA = 512
+assert 1 + HEADER.size <= DATA, "the header overlaps the pixels"
+
+RIVAL_BGR = (255, 0, 255)  # magenta: unlike the held box's green / yellow / grey, and rare in sky and ground
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,46 +62,95 @@ class ViewInfo:
     phase: str = ""
     awaiting: bool = False  # a candidate waits for the operator's confirmation
     text: str = ""  # one more line (track state, the last event)
+    # The frame's most confident other candidate (the box's ``.rival``; .xyxy and .confidence) or None: what the
+    # operator weighs against the candidate before confirming it.
+    rival: Any = None
+
+
+def _finite_xyxy(b: Any) -> tuple[int, int, int, int] | None:
+    """Pixel corners, None for a box that cannot be drawn (a detector's NaN must not end the view process)."""
+    x0, y0, x1, y1 = b.xyxy
+    if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+        return None
+    return round(x0), round(y0), round(x1), round(y1)
+
+
+def _confidence(b: Any) -> str:
+    """"0.42", or "" when the box carries no finite confidence (nothing made up)."""
+    c = getattr(b, "confidence", None)
+    return f"{c:.2f}" if isinstance(c, (int, float)) and math.isfinite(c) else ""
+
+
+def _dashed_rectangle(img: np.ndarray, p0: tuple[int, int], p1: tuple[int, int], colour: tuple[int, int, int],
+                      thickness: int = 2, dash: int = 8, gap: int = 5) -> None:
+    """OpenCV has no dashed line: dashes along each edge (dashed: not the box the app holds)."""
+    import cv2
+
+    (x0, y0), (x1, y1) = p0, p1
+    for a, b, fixed, horizontal in ((x0, x1, y0, True), (x0, x1, y1, True), (y0, y1, x0, False),
+                                    (y0, y1, x1, False)):
+        for s in range(a, b + 1, dash + gap):
+            e = min(s + dash - 1, b)
+            cv2.line(img, (s, fixed) if horizontal else (fixed, s), (e, fixed) if horizontal else (fixed, e),
+                     colour, thickness)
 
 
 def annotate(image: np.ndarray, info: ViewInfo) -> np.ndarray:
     import cv2
 
     img = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    r = info.rival
+    if r is not None and (xy := _finite_xyxy(r)) is not None:  # first: the held box is drawn over it
+        x0, y0, x1, y1 = xy
+        _dashed_rectangle(img, (x0, y0), (x1, y1), RIVAL_BGR)
+        cv2.putText(img, f"other {_confidence(r)}".rstrip(), (x0, max(14, y0 - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    RIVAL_BGR, 1, cv2.LINE_AA)
     b = info.box
-    if b is not None:
+    if b is not None and (xy := _finite_xyxy(b)) is not None:
         engaged = info.phase in ("ENGAGE", "PASS")
         colour = (0, 220, 255) if info.awaiting else (0, 255, 0) if engaged else (180, 180, 180)
-        x0, y0, x1, y1 = (round(v) for v in b.xyxy)
+        x0, y0, x1, y1 = xy
         cv2.rectangle(img, (x0, y0), (x1, y1), colour, 2)
-        if info.awaiting:
-            cv2.putText(img, "CONFIRM?", (x0, max(14, y0 - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.55, colour, 2,
-                        cv2.LINE_AA)
+        # its own confidence beside the rival's: the operator compares the two numbers
+        label = " ".join(x for x in ("CONFIRM?" if info.awaiting else "", _confidence(b)) if x)
+        if label:
+            cv2.putText(img, label, (x0, max(14, y0 - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.55, colour, 2, cv2.LINE_AA)
     lines = [f"{info.phase}" + ("  candidate awaiting confirmation" if info.awaiting else ""), info.text]
     for i, s in enumerate(x for x in lines if x):
         cv2.putText(img, s, (8, 20 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 2, cv2.LINE_AA)
     return img
 
 
+def _box_fields(b: Any) -> tuple[float, ...]:
+    if b is None:
+        return (0.0,) * 5
+    return (*(float(v) for v in b.xyxy), float(getattr(b, "confidence", math.nan)))
+
+
 def pack_header(seq: int, shape: tuple[int, ...], info: ViewInfo) -> bytes:
     h, w = shape[:2]
     c = shape[2] if len(shape) == 3 else 1
-    xyxy = tuple(float(v) for v in info.box.xyxy) if info.box is not None else (0.0, 0.0, 0.0, 0.0)
-    return HEADER.pack(seq, h, w, c, info.box is not None, bool(info.awaiting), *xyxy,
+    return HEADER.pack(HEADER_VERSION, seq, h, w, c, info.box is not None, bool(info.awaiting),
+                       info.rival is not None, *_box_fields(info.box), *_box_fields(info.rival),
                        info.phase.encode()[:32], info.text.encode()[:256])
 
 
 @dataclass(frozen=True, slots=True)
 class _Box:
     xyxy: tuple[float, float, float, float]
+    confidence: float = math.nan  # NaN: the box had none (no number drawn)
 
 
 def unpack_header(raw: bytes) -> tuple[int, tuple[int, ...], ViewInfo]:
-    seq, h, w, c, has_box, awaiting, x0, y0, x1, y1, phase, text = HEADER.unpack(raw)
+    """ValueError for a header of another layout (HEADER_VERSION)."""
+    if len(raw) < HEADER.size or raw[0] != HEADER_VERSION:
+        raise ValueError(f"live-view header version {raw[0] if raw else None}, expected {HEADER_VERSION}")
+    (_, seq, h, w, c, has_box, awaiting, has_rival, *nums, phase, text) = HEADER.unpack(raw[:HEADER.size])
     shape = (h, w) if c == 1 else (h, w, c)
-    box = _Box((x0, y0, x1, y1)) if has_box else None
+    box = _Box(tuple(nums[0:4]), nums[4]) if has_box else None
+    rival = _Box(tuple(nums[5:9]), nums[9]) if has_rival else None
     dec = lambda b: b.rstrip(b"\0").decode(errors="replace")  # noqa: E731
-    return seq, shape, ViewInfo(box, dec(phase), bool(awaiting), dec(text))
+    return seq, shape, ViewInfo(box, dec(phase), bool(awaiting), dec(text), rival)
 
 
 class LiveView:

@@ -1,6 +1,7 @@
 """The live view in a real headless browser: chromium loads the page (an <img> on the endless MJPEG stream), we
 take its screenshot and check what a user would see: the camera frame, the box drawn in the engaged / awaiting
-colour where the box is, not a blank or broken image.
+colour where the box is, the other candidate (the rival) dashed in its own colour where it is and only when there
+is one, not a blank or broken image.
 
 A plain ``chromium --headless --screenshot`` works on this page: chromium paints the <img> from the first
 multipart part, so no browser driver (playwright) is needed. CI installs chromium (tools/setup.sh with CI=true)
@@ -20,7 +21,7 @@ import numpy as np
 import pytest
 from liveviewhelpers import Feeder
 
-from companion.app.liveview import LiveView, ViewInfo
+from companion.app.liveview import RIVAL_BGR, LiveView, ViewInfo
 from perception.types import BoundingBox
 
 pytestmark = pytest.mark.timeout(180)
@@ -28,6 +29,7 @@ pytestmark = pytest.mark.timeout(180)
 W, H = 640, 480
 BOX = BoundingBox(320, 240, 200, 140)  # x 220..420, y 170..310
 PATCH = (slice(400, 460), slice(40, 120))  # a magenta patch in the camera frame itself (rows, cols)
+RIVAL = BoundingBox(520, 110, 120, 80, 0.42)  # x 460..580, y 70..150: another candidate in view
 
 
 def _chromium() -> str | None:
@@ -81,14 +83,21 @@ def _mean(img: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
     return img[rows, cols].reshape(-1, 3).mean(axis=0)
 
 
-@pytest.mark.parametrize(("phase", "awaiting", "bgr"),
-                         [("ENGAGE", False, (0, 255, 0)), ("ACQUIRE", True, (0, 220, 255))])
+def _rows_of(img: np.ndarray, bgr: tuple[int, int, int], rows: slice, cols: slice) -> int:
+    """Rows of the region with a pixel near ``bgr`` (JPEG and the browser's scaling blur thin lines)."""
+    return int((np.abs(img[rows, cols].astype(int) - bgr).max(axis=-1) < 90).any(axis=1).sum())
+
+
+# The candidate awaiting the operator's confirmation is shown with the rival in view (what the operator weighs);
+# the engaged one without: the rival is drawn when there is one and only then.
+@pytest.mark.parametrize(("phase", "awaiting", "bgr", "rival"),
+                         [("ENGAGE", False, (0, 255, 0), None), ("ACQUIRE", True, (0, 220, 255), RIVAL)])
 def test_headless_browser_shows_the_annotated_stream(tmp_path: Path, phase: str, awaiting: bool,
-                                                     bgr: tuple[int, int, int]) -> None:
+                                                     bgr: tuple[int, int, int], rival: BoundingBox | None) -> None:
     exe = _browser()
     lv = LiveView("127.0.0.1", 0, max_fps=15).start()
     try:
-        with Feeder(lv, camera_frame(), ViewInfo(BOX, phase, awaiting, "tracking")):
+        with Feeder(lv, camera_frame(), ViewInfo(BOX, phase, awaiting, "tracking", rival)):
             _wait_encoding(lv.port)
             img = screenshot(exe, lv.url, tmp_path / "shot.png")
     finally:
@@ -106,3 +115,11 @@ def test_headless_browser_shows_the_annotated_stream(tmp_path: Path, phase: str,
     # nothing of the box's colour far from it (the box is drawn at its place, not elsewhere)
     away = img[340:390, 450:630].reshape(-1, 3).astype(float)
     assert (np.abs(away - bgr).max(axis=1) < 60).sum() == 0
+    # the rival: its left and right edges (x 460, 580; rows 75..145, 71 rows) dashed in its colour (8 px dashes, 5 px
+    # gaps: ~60 % of the rows), its inside the frame's grey; no pixel of its colour there without a rival
+    edges = [_rows_of(img, RIVAL_BGR, slice(75, 146), cols) for cols in (slice(458, 463), slice(578, 583))]
+    if rival is None:
+        assert _rows_of(img, RIVAL_BGR, slice(40, 160), slice(440, 600)) == 0, edges
+    else:
+        assert all(25 <= n <= 66 for n in edges), edges
+        assert np.abs(_mean(img, slice(90, 130), slice(490, 550)) - 60).max() < 12
