@@ -80,7 +80,8 @@ def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:
 def euler_ned_deg_from_rows(R: Sequence[Sequence[float]]) -> tuple[float, float, float]:
     """:func:`euler_ned_deg_from_R` of a rotation given as nested lists of floats (``R.tolist()``)."""
     (r00, r01, _), (r10, r11, _), (r20, r21, r22) = R
-    pitch = -math.asin(min(1.0, max(-1.0, r20)))
+    s = r20 if r20 > -1.0 else -1.0  # min(1.0, max(-1.0, r20)) without the builtins' cost (every frame)
+    pitch = -math.asin(s if s < 1.0 else 1.0)
     if math.hypot(r21, r22) < 1e-7:
         # Gimbal lock (nose straight up or down): only yaw - roll is defined; take roll = 0,
         # then body y = Rz(yaw) e_y gives the yaw.

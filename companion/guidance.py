@@ -69,6 +69,9 @@ DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 
 g_W = np.array([0.0, 0.0, -G])
 
 _EPS = 1e-12
+# On the per-frame path a max/min of two floats is written ``b if b > a else a`` (= max(a, b)) and
+# ``b if b < a else a`` (= min(a, b)): the same value in every case (ties, signed zeros, NaN: the builtins keep
+# the first argument unless a later one is strictly greater / smaller), at a tenth of the builtin's ~0.09 us.
 Vec3 = np.ndarray | tuple[float, float, float]  # a 3-vector: an array, or three floats on the per-frame path
 _UPTILT_EPS = 1e-12  # rad: below, the camera counts as along body x (the closed form; subnormal sines underflow)
 _ENU_TO_NED_ROWS = [1, 0, 2]
@@ -263,7 +266,7 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
     r2 = p.f_max * p.f_max - K
     if r2 < -1e-12 * p.f_max * p.f_max:
         return None
-    r = math.sqrt(max(r2, 0.0))
+    r = math.sqrt(0.0 if r2 < 0.0 else r2)  # max(r2, 0.0)
     if abs(p.uptilt) > _UPTILT_EPS:
         pieces = [(max(-r, lo), min(r, hi)) for lo, hi in _uptilt_pieces(t_y, t_z, p.uptilt, p.gamma_bar)]
         pieces = [(lo, hi) for lo, hi in pieces if lo <= hi]
@@ -278,7 +281,7 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
             if w2 < -1e-12 * (1.0 + K):
                 return None
             w = math.sqrt(max(w2, 0.0))
-        H = min(w, r)
+        H = r if r < w else w  # min(w, r)
         pieces = [(-H, H)]
     u_x, u_y, u_z = u
     c = math.cos(p.max_tilt)
@@ -410,7 +413,8 @@ def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceP
     pieces, xm_free, b, K, u_x, c = e
     if len(pieces) == 1:  # no uptilt: [-H, H] (twice a frame; the loop below gives the same)
         lo, hi = pieces[0]
-        return _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
+        xm = xm_free if xm_free < hi else hi
+        return _best_tx_in(lo, hi, xm if xm > lo else lo, b, K, u_x, c)  # max(lo, min(hi, xm_free))
     for lo, hi in reversed(pieces):  # the highest piece with a feasible point holds the largest t_x
         x = _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
         if x is not None:
@@ -572,7 +576,8 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     if t_x is None:  # cannot happen: demand_scale checked this very s
         return _fallback(_rows_array(rows), u, p)
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
-    f = min(p.f_max, max(f, p.f_min))  # rounding only: (a) gives |t| >= t_z >= f_min
+    f = p.f_min if p.f_min > f else f  # min(f_max, max(f, f_min)): rounding only, (a) gives |t| >= t_z >= f_min
+    f = f if f < p.f_max else p.f_max
     # R_W_PN.dot(_R_y_R_x(phi, theta)) with both factors in one array (one construction, not two, every frame):
     # the same two contiguous 3x3 operands for BLAS, the same product (tests/test_speed_identity.py).
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
@@ -624,7 +629,9 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 
     Never 0: a quadrotor at zero thrust falls and cannot recover.
     """
-    return min(1.0, max(thrust_min, hover_thrust * f_th / G))
+    u = hover_thrust * f_th / G
+    u = u if u > thrust_min else thrust_min  # min(1.0, max(thrust_min, u))
+    return u if u < 1.0 else 1.0
 
 
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
