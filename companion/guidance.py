@@ -422,6 +422,38 @@ def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceP
     return None
 
 
+def _best_tx_plain(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams) -> float | None:
+    """:func:`_best_tx` without uptilt (``abs(p.uptilt) <= _UPTILT_EPS``), the same floats: :func:`_envelope`'s one
+    piece ``[-H, H]`` written out, without its lists and tuples, and the usual answer (``H`` within the tilt cone)
+    before the maximiser of h is needed. :func:`solve` calls it twice a frame (tests/test_speed_identity.py)."""
+    f_max = p.f_max
+    if t_z < p.f_min - 1e-12 * f_max:  # (a)
+        return None
+    K = t_y * t_y + t_z * t_z
+    r2 = f_max * f_max - K  # (b)
+    if r2 < -1e-12 * f_max * f_max:
+        return None
+    r = math.sqrt(0.0 if r2 < 0.0 else r2)
+    tg = math.tan(p.gamma_bar)  # (c)
+    if p.fov == "exact":
+        w = t_z * tg
+    else:
+        w2 = t_z * t_z * tg * tg - t_y * t_y
+        if w2 < -1e-12 * (1.0 + K):
+            return None
+        w = math.sqrt(0.0 if w2 < 0.0 else w2)
+    H = r if r < w else w  # min(w, r)
+    u_x, u_y, u_z = u
+    c = math.cos(p.max_tilt)
+    b = u_y * t_y + u_z * t_z
+    if u_x * H + b - c * math.sqrt(H * H + K) >= 0.0:  # _tilt_margin(H) >= 0: (d) holds at the top of the piece
+        return H
+    s2 = c * c - u_x * u_x
+    xm = u_x * math.sqrt(K / s2) if s2 > 1e-15 else (math.copysign(math.inf, u_x) if u_x != 0.0 else 0.0)
+    xm = xm if xm < H else H
+    return _best_tx_in(-H, H, xm if xm > -H else -H, b, K, u_x, c)  # max(-H, min(H, xm))
+
+
 def _best_tx_in(L: float, H: float, xm: float, b: float, K: float, u_x: float, c: float) -> float | None:
     """Largest ``t_x`` in ``[L, H]`` within the tilt cone (d); ``xm`` is h's maximiser clamped into ``[L, H]``."""
     if _tilt_margin(H, b, K, u_x, c) >= 0.0:
@@ -561,9 +593,10 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     # demand_scale's first two tests (s = 0, then s = 1) written out: most frames the full demand is feasible and
     # the search below is not needed (its closure and memo cost ~5 % of a controller step). The same _best_tx
     # calls with the same arguments, so the same s and t_x.
-    if _best_tx(0.0 * a_y - g_y, 0.0 * a_z - g_z, u, p) is None:
+    best_tx = _best_tx_plain if abs(p.uptilt) <= _UPTILT_EPS else _best_tx  # the same t_x, the first cheaper
+    if best_tx(0.0 * a_y - g_y, 0.0 * a_z - g_z, u, p) is None:
         return _fallback(_rows_array(rows), u, p)
-    t_x = _best_tx(1.0 * a_y - g_y, 1.0 * a_z - g_z, u, p)
+    t_x = best_tx(1.0 * a_y - g_y, 1.0 * a_z - g_z, u, p)
     if t_x is not None:
         s = 1.0
     else:
