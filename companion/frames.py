@@ -80,6 +80,12 @@ def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:
 def euler_ned_deg_from_rows(R: Sequence[Sequence[float]]) -> tuple[float, float, float]:
     """:func:`euler_ned_deg_from_R` of a rotation given as nested lists of floats (``R.tolist()``)."""
     (r00, r01, _), (r10, r11, _), (r20, r21, r22) = R
+    return euler_ned_deg_of(r00, r01, r10, r11, r20, r21, r22)
+
+
+def euler_ned_deg_of(r00: float, r01: float, r10: float, r11: float, r20: float, r21: float,
+                     r22: float) -> tuple[float, float, float]:
+    """:func:`euler_ned_deg_from_rows` of the rotation's entries it reads (guidance.to_setpoint: no rows built)."""
     s = r20 if r20 > -1.0 else -1.0  # min(1.0, max(-1.0, r20)) without the builtins' cost (every frame)
     pitch = -math.asin(s if s < 1.0 else 1.0)
     if math.hypot(r21, r22) < 1e-7:
@@ -123,14 +129,16 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
         w, x, y, z = q_wxyz.tolist()  # the same floats as float() of each element
     else:
         w, x, y, z = map(float, q_wxyz)  # the same floats as a generator of float(c), cheaper (the simulator's path)
-    n = w * w + x * x + y * y + z * z
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z  # each product once (the same floats as written out twice)
+    n = ww + xx + yy + zz
     if not (n > 1e-12 and math.isfinite(n)):
         raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
     s = 2.0 / n
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
     R = np.array((  # flat, then reshaped: a third cheaper than from nested lists (every frame)
-        1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w),
-        s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w),
-        s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y),
+        1.0 - s * (yy + zz), s * (xy - zw), s * (xz + yw),
+        s * (xy + zw), 1.0 - s * (xx + zz), s * (yz - xw),
+        s * (xz - yw), s * (yz + xw), 1.0 - s * (xx + yy),
     )).reshape(3, 3)
     if key is not None:
         _LAST_R = (key, R.copy())  # one tuple rebinding: a reader on another thread sees a matching pair

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.frames import euler_ned_deg_from_rows, quat_wxyz_from_R
+from companion.frames import euler_ned_deg_of, quat_wxyz_from_R
 from perception.fastinit import fast_init
 
 G = 9.81
@@ -672,9 +672,9 @@ def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min:
     # = P_NED_ENU @ R_W_B @ F_FRD_FLU = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS, without two matmuls; in floats
     # (x * 1.0 is x and x * -1.0 is -x, exactly as numpy's elementwise product, signed zeros included).
     (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
-    rows = ((b0, -b1, -b2), (a0, -a1, -a2), (-c0, c1, c2))
-    roll, pitch, yaw = euler_ned_deg_from_rows(rows)
-    R = np.array((b0, -b1, -b2, a0, -a1, -a2, -c0, c1, c2)).reshape(3, 3)  # the rows, flat: cheaper than nested
+    a1, a2, b1, b2, c0 = -a1, -a2, -b1, -b2, -c0  # negated once: the rows are (b0, b1, b2), (a0, a1, a2), (c0, c1, c2)
+    roll, pitch, yaw = euler_ned_deg_of(b0, b1, a0, a1, c0, c1, c2)
+    R = np.array((b0, b1, b2, a0, a1, a2, c0, c1, c2)).reshape(3, 3)  # the rows, flat: cheaper than nested
     return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R)
 
 
