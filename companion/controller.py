@@ -477,20 +477,20 @@ class PNController:
             c = self.p.drag_compensation * drag_y
             yx, yy, yz = y_xyz
             ax, ay, az = ax - c * yx, ay - c * yy, az - c * yz  # a_n - c y_pn
-        sol = guidance.solve(l_sol, (ax, ay, az), self._gamma(box), y_ref=self._y_ref(l_sol, R_ned_frd))
+        f_th, _, _, R_W_B, scale, _ = guidance.solve_fields(l_sol, (ax, ay, az), self._gamma(box),
+                                                            self._y_ref(l_sol, R_ned_frd))
         self._l_prev_xyz, self._t_prev = lf, t
         if self.p.delay_compensation:
             # Our net acceleration normal to the LOS: thrust and gravity give the honoured demand; the drag the
             # accelerometer measures acts on top (the compensation above only cancels it in the command).
-            s = sol.demand_scale
-            nx, ny, nz = s * ax, s * ay, s * az
+            nx, ny, nz = scale * ax, scale * ay, scale * az
             if y_xyz is not None:
                 yx, yy, yz = y_xyz
                 nx, ny, nz = nx + drag_y * yx, ny + drag_y * yy, nz + drag_y * yz
             self._note_command((nx, ny, nz))
-        sp = guidance.to_setpoint(sol.R_W_B, sol.f_th, self.p.hover_thrust, self.p.thrust_min)
+        sp = guidance.to_setpoint(R_W_B, f_th, self.p.hover_thrust, self.p.thrust_min)
         return ControlOutput(t, sp, "pn", np.array(swap_ned_enu_xyz(*lf)), lambda_dot, np.array((ax, ay, az)),
-                             sol.demand_scale, sol.f_th, rejected, v_rel)
+                             scale, f_th, rejected, v_rel)
 
     def _smooth_rate(self, l_f: tuple[float, float, float], w: np.ndarray | tuple[float, float, float],
                      dt: float) -> tuple[float, tuple[float, float, float]]:

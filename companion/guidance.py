@@ -15,7 +15,7 @@ f_th upper limit (bar f_th)             ``GuidanceParams.f_max`` (and ``.f_min``
 (not in the paper) maximum tilt         ``GuidanceParams.max_tilt`` (thrust axis from vertical)
 eq:meth_rotation_pn_world (R_PN^W)      :func:`pn_frame`
 eq:meth_optimization_problem_roll_pitch :func:`roll_pitch`, :func:`angles_of_thrust`
-f_th*, phi*, theta* (closed form)       :func:`solve`
+f_th*, phi*, theta* (closed form)       :func:`solve` (as a tuple: :func:`solve_fields`)
 saturation of infeasible demands        :func:`demand_scale`
 R_B^W = R_PN^W R_y(phi) R_x(theta)      :func:`solve` -> ``R_W_B``
 MAVSDK setpoint (NED/FRD, deg, 0..1)    :func:`to_setpoint`
@@ -584,6 +584,15 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS (an array or three floats),
     ``a_n`` the PN demand (world; an array or three floats).
     """
+    return ThrustAttitude(*solve_fields(l, a_n, p, y_ref))
+
+
+# ThrustAttitude's fields in order: (f_th, phi, theta, R_W_B, demand_scale, fallback).
+Solution = tuple[float, float, float, np.ndarray, float, bool]
+
+
+def solve_fields(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None) -> Solution:  # noqa: E741
+    """:func:`solve`'s ThrustAttitude as the tuple of its fields (the controller's per-frame path: no object)."""
     rows = _pn_frame_rows(l, y_ref)
     ax, ay, az = a_n.tolist() if isinstance(a_n, np.ndarray) else a_n
     (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
@@ -596,7 +605,8 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     best_tx = _best_tx_plain if abs(p.uptilt) <= _UPTILT_EPS else _best_tx  # the same t_x, the first cheaper
     if best_tx(0.0 * a_y - g_y, 0.0 * a_z - g_z, u, p) is None:
         return _fallback(_rows_array(rows), u, p)
-    t_x = best_tx(1.0 * a_y - g_y, 1.0 * a_z - g_z, u, p)
+    t_y, t_z = 1.0 * a_y - g_y, 1.0 * a_z - g_z  # s = 1
+    t_x = best_tx(t_y, t_z, u, p)
     if t_x is not None:
         s = 1.0
     else:
@@ -605,7 +615,7 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
         if s is None:  # cannot happen: s = 0 was feasible above
             return _fallback(_rows_array(rows), u, p)
         t_x = memo[s] if s in memo else _best_tx(s * a_y - g_y, s * a_z - g_z, u, p)
-    t_y, t_z = s * a_y - g_y, s * a_z - g_z
+        t_y, t_z = s * a_y - g_y, s * a_z - g_z
     if t_x is None:  # cannot happen: demand_scale checked this very s
         return _fallback(_rows_array(rows), u, p)
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
@@ -617,7 +627,7 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
     M = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22,
                   cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(2, 3, 3)
-    return ThrustAttitude(f, phi, theta, M[0].dot(M[1]), s, False)
+    return f, phi, theta, M[0].dot(M[1]), s, False
 
 
 def _rows_array(rows: list[list[float]]) -> np.ndarray:
@@ -626,7 +636,7 @@ def _rows_array(rows: list[list[float]]) -> np.ndarray:
     return np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
 
 
-def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> ThrustAttitude:
+def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> Solution:
     """No demand is feasible (LOS steeper than the FOV and tilt bounds together allow, or too steep for f_min).
 
     Wings level about the LOS (theta = 0) and the optical axis as close to the LOS as the tilt bound allows:
@@ -638,7 +648,7 @@ def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidancePara
     phi = max(alpha - p.max_tilt, min(alpha + p.max_tilt, p.uptilt))  # optical axis at phi - uptilt from the LOS
     up = u[0] * math.sin(phi) + u[2] * math.cos(phi)  # cos(tilt) > 0
     f = min(p.f_max, max(p.f_min, G / up if up > _EPS else p.f_min))
-    return ThrustAttitude(f, phi, 0.0, R_W_PN.dot(_R_y_R_x(phi, 0.0)), 0.0, True)
+    return f, phi, 0.0, R_W_PN.dot(_R_y_R_x(phi, 0.0)), 0.0, True
 
 
 @fast_init

@@ -51,12 +51,12 @@ class OwnMotion:
             else:
                 eff = a0
         ax, ay, az = a.tolist() if isinstance(a, np.ndarray) else (float(a[0]), float(a[1]), float(a[2]))
-        self._hist.append((t, (ax, ay, az), eff))
-        self._t.append(t)
+        hist, times = self._hist, self._t
+        hist.append((t, (ax, ay, az), eff))
+        times.append(t)
         horizon = t - HISTORY_S
-        while len(self._hist) > 2 and self._hist[1][0] < horizon:
-            self._hist.pop(0)
-            self._t.pop(0)
+        while len(times) > 2 and times[1] < horizon:  # times[i] is hist[i][0]
+            del hist[0], times[0]
 
     def dv(self, t0: float, t1: float) -> np.ndarray:
         """The velocity the (modelled) acceleration added between t0 and t1, without drag."""
