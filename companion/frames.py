@@ -13,6 +13,7 @@ A rotation ``R_a_b`` maps vectors from frame b to frame a (``v_a = R_a_b @ v_b``
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Sequence
 
 import numpy as np
@@ -135,17 +136,22 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
         raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
     s = 2.0 / n
     xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-    R = np.array((  # flat, then reshaped: a third cheaper than from nested lists (every frame)
+    entries = (
         1.0 - s * (yy + zz), s * (xy - zw), s * (xz + yw),
         s * (xy + zw), 1.0 - s * (xx + zz), s * (yz - xw),
         s * (xz - yw), s * (yz + xw), 1.0 - s * (xx + yy),
-    )).reshape(3, 3)
-    if key is not None:
-        _LAST_R = (key, R.copy())  # one tuple rebinding: a reader on another thread sees a matching pair
-    return R
+    )
+    if key is None:
+        return np.array(entries).reshape(3, 3)  # flat, then reshaped: a third cheaper than from nested lists
+    # The cached matrix is never handed out, only copies of it: an immutable array on the packed floats (the same
+    # bits) costs less than np.array's parsing of the tuple and saves a copy (every frame).
+    R = np.ndarray((3, 3), _F64, _PACK_3X3.pack(*entries))
+    _LAST_R = (key, R)  # one tuple rebinding: a reader on another thread sees a matching pair
+    return R.copy()
 
 
 _LAST_R: tuple[bytes | None, np.ndarray] = (None, np.eye(3))
 # The native float64 dtype is a singleton: an identity test is half the cost of ``dtype == np.float64`` (a
 # non-native byte order fails it and takes the general path, with the same values).
 _F64 = np.dtype(np.float64)
+_PACK_3X3 = struct.Struct("9d")  # nine native doubles: the float64 array's bytes

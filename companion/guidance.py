@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,6 +76,8 @@ _EPS = 1e-12
 Vec3 = np.ndarray | tuple[float, float, float]  # a 3-vector: an array, or three floats on the per-frame path
 _UPTILT_EPS = 1e-12  # rad: below, the camera counts as along body x (the closed form; subnormal sines underflow)
 _ENU_TO_NED_ROWS = [1, 0, 2]
+_F64 = np.dtype(np.float64)
+_PACK_2X3X3 = struct.Struct("18d")  # eighteen native doubles: a (2, 3, 3) float64 array's bytes
 _NED_FRD_SIGNS = np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])  # row signs of P_NED_ENU x column signs of F_FRD_FLU
 
 
@@ -621,12 +624,13 @@ def solve_fields(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
     f = p.f_min if p.f_min > f else f  # min(f_max, max(f, f_min)): rounding only, (a) gives |t| >= t_z >= f_min
     f = f if f < p.f_max else p.f_max
-    # R_W_PN.dot(_R_y_R_x(phi, theta)) with both factors in one array (one construction, not two, every frame):
-    # the same two contiguous 3x3 operands for BLAS, the same product (tests/test_speed_identity.py).
+    # R_W_PN.dot(_R_y_R_x(phi, theta)) with both factors in one array (one construction, not two, every frame),
+    # an immutable one on the packed floats (cheaper than np.array's parsing of a tuple): the same two contiguous
+    # 3x3 operands for BLAS, the same product (tests/test_speed_identity.py).
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
     cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
-    M = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22,
-                  cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(2, 3, 3)
+    M = np.ndarray((2, 3, 3), _F64, _PACK_2X3X3.pack(r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                                                      cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct))
     return f, phi, theta, M[0].dot(M[1]), s, False
 
 

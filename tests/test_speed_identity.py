@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 
 import numpy as np
 import pytest
@@ -214,6 +215,9 @@ def test_one_array_of_two_factors_gives_the_same_product() -> None:
         B[RNG.integers(3), RNG.integers(3)] = -0.0
         M = np.array((*A.ravel().tolist(), *B.ravel().tolist())).reshape(2, 3, 3)
         assert M[0].dot(M[1]).tobytes() == A.dot(B).tobytes()
+        # solve's own construction: an immutable array on the packed floats
+        P = np.ndarray((2, 3, 3), np.float64, struct.pack("18d", *A.ravel().tolist(), *B.ravel().tolist()))
+        assert P[0].dot(P[1]).tobytes() == A.dot(B).tobytes()
     gp = guidance.GuidanceParams(k_pn=3.0, v_rel_bar=15.0, gamma_bar=0.3, f_max=19.6, f_min=1.0)
     for _ in range(300):
         los = RNG.normal(size=3) * (1.0, 1.0, 0.3)
