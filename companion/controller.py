@@ -25,7 +25,7 @@ import numpy as np
 
 from companion import guidance
 from companion.closing import ClosingParams, ClosingSpeedEstimator
-from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, swap_ned_enu, swap_ned_enu_xyz
+from companion.frames import R_from_quat_wxyz_shared, euler_ned_deg_from_R, swap_ned_enu, swap_ned_enu_xyz
 from companion.guidance import GuidanceParams, Setpoint
 from companion.ownmotion import OwnMotion
 from perception.fastinit import fast_init
@@ -245,7 +245,7 @@ class PNController:
         """One control step for the frame captured at ``t`` (s), with the attitude at that time and, if the
         caller has them, the accelerometer's specific force then (body FRD, m/s^2: closing speed and drag) and
         the current time on the same clock (``t_now - t`` is the frame's age: the gain allows for it)."""
-        R_ned_frd = R_from_quat_wxyz(q_wxyz_ned_frd)
+        R_ned_frd = R_from_quat_wxyz_shared(q_wxyz_ned_frd)  # read only here: no copy of the cached matrix
         if t_now is not None and math.isfinite(t_now) and math.isfinite(t):
             age = t_now - t
             self._latency = age if age > 0.0 else 0.0  # max(0.0, age)

@@ -118,6 +118,18 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
     Closed form rather than scipy: it runs once per camera frame in the controller, and
     building a Rotation costs more than the whole guidance solve. Tested against scipy.
     """
+    R, shared = _R_from_quat_wxyz(q_wxyz)
+    return R.copy() if shared else R
+
+
+def R_from_quat_wxyz_shared(q_wxyz: np.ndarray) -> np.ndarray:
+    """:func:`R_from_quat_wxyz` for a caller that only reads it: possibly the cached matrix itself, immutable (a
+    write raises), without the copy (the controller's step)."""
+    return _R_from_quat_wxyz(q_wxyz)[0]
+
+
+def _R_from_quat_wxyz(q_wxyz: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The matrix, and whether it is the cache's own (immutable: hand out copies)."""
     global _LAST_R
     key = None
     if type(q_wxyz) is np.ndarray and q_wxyz.dtype is _F64 and q_wxyz.shape == (4,):
@@ -126,7 +138,7 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
         key = q_wxyz.tobytes()
         last_key, last_R = _LAST_R
         if key == last_key:
-            return last_R.copy()
+            return last_R, True
         w, x, y, z = q_wxyz.tolist()  # the same floats as float() of each element
     else:
         w, x, y, z = map(float, q_wxyz)  # the same floats as a generator of float(c), cheaper (the simulator's path)
@@ -142,12 +154,12 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
         s * (xz - yw), s * (yz + xw), 1.0 - s * (xx + yy),
     )
     if key is None:
-        return np.array(entries).reshape(3, 3)  # flat, then reshaped: a third cheaper than from nested lists
-    # The cached matrix is never handed out, only copies of it: an immutable array on the packed floats (the same
-    # bits) costs less than np.array's parsing of the tuple and saves a copy (every frame).
+        return np.array(entries).reshape(3, 3), False  # flat, then reshaped: a third cheaper than nested lists
+    # The cached matrix is handed out only as copies or to readers: an immutable array on the packed floats (the
+    # same bits) costs less than np.array's parsing of the tuple and saves a copy (every frame).
     R = np.ndarray((3, 3), _F64, _PACK_3X3.pack(*entries))
     _LAST_R = (key, R)  # one tuple rebinding: a reader on another thread sees a matching pair
-    return R.copy()
+    return R, True
 
 
 _LAST_R: tuple[bytes | None, np.ndarray] = (None, np.eye(3))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from companion import guidance
-from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, euler_ned_deg_from_rows
+from companion.frames import R_from_quat_wxyz, R_from_quat_wxyz_shared, euler_ned_deg_from_R, euler_ned_deg_from_rows
 from perception.los import CameraModel, LosFilter
 
 RNG = np.random.default_rng(21)
@@ -88,6 +88,9 @@ def test_euler_rows_and_quat_cache() -> None:
         R2[0, 0] = 7.0
         assert R_from_quat_wxyz(q).tobytes() == R.tobytes()  # a caller's edit does not reach the cache
         assert R_from_quat_wxyz(list(q)).tobytes() == R.tobytes()
+        shared = R_from_quat_wxyz_shared(q)  # the controller's: the cached matrix itself, which nobody can change
+        assert shared.tobytes() == R.tobytes() and not shared.flags.writeable
+        assert R_from_quat_wxyz(q).flags.writeable
         # the old element-wise form
         w, x, y, z = (float(c) for c in q)
         s = 2.0 / (w * w + x * x + y * y + z * z)
