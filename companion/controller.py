@@ -33,10 +33,10 @@ from perception.los import CameraModel, LosFilter, LosKalman, LosKalmanParams
 from perception.types import BoundingBox
 
 # A 3-vector: an array, or three floats on the per-frame path.
-# Max and min on the per-frame path: max(a, b) is written ``b if b > a else a`` and min(a, b) ``b if b < a else a``: the
-# same value in every case (ties, signed zeros, NaN: the builtins keep the first argument unless a later one is
-# strictly greater / smaller), at a tenth of the builtins' cost (~0.1 us a call, ~25 calls a frame).
 Vec3 = np.ndarray | tuple[float, float, float]
+# Max and min on the per-frame path: max(a, b) is written ``b if b > a else a`` and min(a, b) ``b if b < a else a``:
+# the same value in every case (ties, signed zeros, NaN: the builtins keep the first argument unless a later one is
+# strictly greater / smaller), at a tenth of the builtins' cost (~0.1 us a call, ~25 calls a frame).
 
 if TYPE_CHECKING:
     from companion.config import Config
