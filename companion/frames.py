@@ -13,6 +13,7 @@ A rotation ``R_a_b`` maps vectors from frame b to frame a (``v_a = R_a_b @ v_b``
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Sequence
 
 import numpy as np
@@ -80,7 +81,14 @@ def euler_ned_deg_from_R(R_ned_frd: np.ndarray) -> tuple[float, float, float]:
 def euler_ned_deg_from_rows(R: Sequence[Sequence[float]]) -> tuple[float, float, float]:
     """:func:`euler_ned_deg_from_R` of a rotation given as nested lists of floats (``R.tolist()``)."""
     (r00, r01, _), (r10, r11, _), (r20, r21, r22) = R
-    pitch = -math.asin(min(1.0, max(-1.0, r20)))
+    return euler_ned_deg_of(r00, r01, r10, r11, r20, r21, r22)
+
+
+def euler_ned_deg_of(r00: float, r01: float, r10: float, r11: float, r20: float, r21: float,
+                     r22: float) -> tuple[float, float, float]:
+    """:func:`euler_ned_deg_from_rows` of the rotation's entries it reads (guidance.to_setpoint: no rows built)."""
+    s = r20 if r20 > -1.0 else -1.0  # min(1.0, max(-1.0, r20)) without the builtins' cost (every frame)
+    pitch = -math.asin(s if s < 1.0 else 1.0)
     if math.hypot(r21, r22) < 1e-7:
         # Gimbal lock (nose straight up or down): only yaw - roll is defined; take roll = 0,
         # then body y = Rz(yaw) e_y gives the yaw.
@@ -110,6 +118,18 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
     Closed form rather than scipy: it runs once per camera frame in the controller, and
     building a Rotation costs more than the whole guidance solve. Tested against scipy.
     """
+    R, shared = _R_from_quat_wxyz(q_wxyz)
+    return R.copy() if shared else R
+
+
+def R_from_quat_wxyz_shared(q_wxyz: np.ndarray) -> np.ndarray:
+    """:func:`R_from_quat_wxyz` for a caller that only reads it: possibly the cached matrix itself, immutable (a
+    write raises), without the copy (the controller's step)."""
+    return _R_from_quat_wxyz(q_wxyz)[0]
+
+
+def _R_from_quat_wxyz(q_wxyz: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The matrix, and whether it is the cache's own (immutable: hand out copies)."""
     global _LAST_R
     key = None
     if type(q_wxyz) is np.ndarray and q_wxyz.dtype is _F64 and q_wxyz.shape == (4,):
@@ -118,25 +138,32 @@ def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
         key = q_wxyz.tobytes()
         last_key, last_R = _LAST_R
         if key == last_key:
-            return last_R.copy()
+            return last_R, True
         w, x, y, z = q_wxyz.tolist()  # the same floats as float() of each element
     else:
         w, x, y, z = map(float, q_wxyz)  # the same floats as a generator of float(c), cheaper (the simulator's path)
-    n = w * w + x * x + y * y + z * z
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z  # each product once (the same floats as written out twice)
+    n = ww + xx + yy + zz
     if not (n > 1e-12 and math.isfinite(n)):
         raise ValueError(f"attitude quaternion is not a rotation: {tuple(q_wxyz)}")
     s = 2.0 / n
-    R = np.array((  # flat, then reshaped: a third cheaper than from nested lists (every frame)
-        1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w),
-        s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w),
-        s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y),
-    )).reshape(3, 3)
-    if key is not None:
-        _LAST_R = (key, R.copy())  # one tuple rebinding: a reader on another thread sees a matching pair
-    return R
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    entries = (
+        1.0 - s * (yy + zz), s * (xy - zw), s * (xz + yw),
+        s * (xy + zw), 1.0 - s * (xx + zz), s * (yz - xw),
+        s * (xz - yw), s * (yz + xw), 1.0 - s * (xx + yy),
+    )
+    if key is None:
+        return np.array(entries).reshape(3, 3), False  # flat, then reshaped: a third cheaper than nested lists
+    # The cached matrix is handed out only as copies or to readers: an immutable array on the packed floats (the
+    # same bits) costs less than np.array's parsing of the tuple and saves a copy (every frame).
+    R = np.ndarray((3, 3), _F64, _PACK_3X3.pack(*entries))
+    _LAST_R = (key, R)  # one tuple rebinding: a reader on another thread sees a matching pair
+    return R, True
 
 
 _LAST_R: tuple[bytes | None, np.ndarray] = (None, np.eye(3))
 # The native float64 dtype is a singleton: an identity test is half the cost of ``dtype == np.float64`` (a
 # non-native byte order fails it and takes the general path, with the same values).
 _F64 = np.dtype(np.float64)
+_PACK_3X3 = struct.Struct("9d")  # nine native doubles: the float64 array's bytes

@@ -15,7 +15,7 @@ f_th upper limit (bar f_th)             ``GuidanceParams.f_max`` (and ``.f_min``
 (not in the paper) maximum tilt         ``GuidanceParams.max_tilt`` (thrust axis from vertical)
 eq:meth_rotation_pn_world (R_PN^W)      :func:`pn_frame`
 eq:meth_optimization_problem_roll_pitch :func:`roll_pitch`, :func:`angles_of_thrust`
-f_th*, phi*, theta* (closed form)       :func:`solve`
+f_th*, phi*, theta* (closed form)       :func:`solve` (as a tuple: :func:`solve_fields`)
 saturation of infeasible demands        :func:`demand_scale`
 R_B^W = R_PN^W R_y(phi) R_x(theta)      :func:`solve` -> ``R_W_B``
 MAVSDK setpoint (NED/FRD, deg, 0..1)    :func:`to_setpoint`
@@ -57,11 +57,12 @@ from __future__ import annotations
 
 import itertools
 import math
+import struct
 from dataclasses import dataclass
 
 import numpy as np
 
-from companion.frames import euler_ned_deg_from_rows, quat_wxyz_from_R
+from companion.frames import euler_ned_deg_of, quat_wxyz_from_R
 from perception.fastinit import fast_init
 
 G = 9.81
@@ -69,9 +70,14 @@ DEFAULT_MAX_TILT_DEG = 50.0  # airframe.max_tilt default (x500: level flight at 
 g_W = np.array([0.0, 0.0, -G])
 
 _EPS = 1e-12
+# On the per-frame path a max/min of two floats is written ``b if b > a else a`` (= max(a, b)) and
+# ``b if b < a else a`` (= min(a, b)): the same value in every case (ties, signed zeros, NaN: the builtins keep
+# the first argument unless a later one is strictly greater / smaller), at a tenth of the builtin's ~0.09 us.
 Vec3 = np.ndarray | tuple[float, float, float]  # a 3-vector: an array, or three floats on the per-frame path
 _UPTILT_EPS = 1e-12  # rad: below, the camera counts as along body x (the closed form; subnormal sines underflow)
 _ENU_TO_NED_ROWS = [1, 0, 2]
+_F64 = np.dtype(np.float64)
+_PACK_2X3X3 = struct.Struct("18d")  # eighteen native doubles: a (2, 3, 3) float64 array's bytes
 _NED_FRD_SIGNS = np.outer([1.0, 1.0, -1.0], [1.0, -1.0, -1.0])  # row signs of P_NED_ENU x column signs of F_FRD_FLU
 
 
@@ -263,7 +269,7 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
     r2 = p.f_max * p.f_max - K
     if r2 < -1e-12 * p.f_max * p.f_max:
         return None
-    r = math.sqrt(max(r2, 0.0))
+    r = math.sqrt(0.0 if r2 < 0.0 else r2)  # max(r2, 0.0)
     if abs(p.uptilt) > _UPTILT_EPS:
         pieces = [(max(-r, lo), min(r, hi)) for lo, hi in _uptilt_pieces(t_y, t_z, p.uptilt, p.gamma_bar)]
         pieces = [(lo, hi) for lo, hi in pieces if lo <= hi]
@@ -278,7 +284,7 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
             if w2 < -1e-12 * (1.0 + K):
                 return None
             w = math.sqrt(max(w2, 0.0))
-        H = min(w, r)
+        H = r if r < w else w  # min(w, r)
         pieces = [(-H, H)]
     u_x, u_y, u_z = u
     c = math.cos(p.max_tilt)
@@ -410,12 +416,45 @@ def _best_tx(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceP
     pieces, xm_free, b, K, u_x, c = e
     if len(pieces) == 1:  # no uptilt: [-H, H] (twice a frame; the loop below gives the same)
         lo, hi = pieces[0]
-        return _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
+        xm = xm_free if xm_free < hi else hi
+        return _best_tx_in(lo, hi, xm if xm > lo else lo, b, K, u_x, c)  # max(lo, min(hi, xm_free))
     for lo, hi in reversed(pieces):  # the highest piece with a feasible point holds the largest t_x
         x = _best_tx_in(lo, hi, max(lo, min(hi, xm_free)), b, K, u_x, c)
         if x is not None:
             return x
     return None
+
+
+def _best_tx_plain(t_y: float, t_z: float, u: tuple[float, float, float], p: GuidanceParams) -> float | None:
+    """:func:`_best_tx` without uptilt (``abs(p.uptilt) <= _UPTILT_EPS``), the same floats: :func:`_envelope`'s one
+    piece ``[-H, H]`` written out, without its lists and tuples, and the usual answer (``H`` within the tilt cone)
+    before the maximiser of h is needed. :func:`solve` calls it twice a frame (tests/test_speed_identity.py)."""
+    f_max = p.f_max
+    if t_z < p.f_min - 1e-12 * f_max:  # (a)
+        return None
+    K = t_y * t_y + t_z * t_z
+    r2 = f_max * f_max - K  # (b)
+    if r2 < -1e-12 * f_max * f_max:
+        return None
+    r = math.sqrt(0.0 if r2 < 0.0 else r2)
+    tg = math.tan(p.gamma_bar)  # (c)
+    if p.fov == "exact":
+        w = t_z * tg
+    else:
+        w2 = t_z * t_z * tg * tg - t_y * t_y
+        if w2 < -1e-12 * (1.0 + K):
+            return None
+        w = math.sqrt(0.0 if w2 < 0.0 else w2)
+    H = r if r < w else w  # min(w, r)
+    u_x, u_y, u_z = u
+    c = math.cos(p.max_tilt)
+    b = u_y * t_y + u_z * t_z
+    if u_x * H + b - c * math.sqrt(H * H + K) >= 0.0:  # _tilt_margin(H) >= 0: (d) holds at the top of the piece
+        return H
+    s2 = c * c - u_x * u_x
+    xm = u_x * math.sqrt(K / s2) if s2 > 1e-15 else (math.copysign(math.inf, u_x) if u_x != 0.0 else 0.0)
+    xm = xm if xm < H else H
+    return _best_tx_in(-H, H, xm if xm > -H else -H, b, K, u_x, c)  # max(-H, min(H, xm))
 
 
 def _best_tx_in(L: float, H: float, xm: float, b: float, K: float, u_x: float, c: float) -> float | None:
@@ -548,6 +587,15 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     ``R_B^W = R_PN^W R_y(phi*) R_x(theta*)``. ``l`` is the world-frame unit LOS (an array or three floats),
     ``a_n`` the PN demand (world; an array or three floats).
     """
+    return ThrustAttitude(*solve_fields(l, a_n, p, y_ref))
+
+
+# ThrustAttitude's fields in order: (f_th, phi, theta, R_W_B, demand_scale, fallback).
+Solution = tuple[float, float, float, np.ndarray, float, bool]
+
+
+def solve_fields(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None) -> Solution:  # noqa: E741
+    """:func:`solve`'s ThrustAttitude as the tuple of its fields (the controller's per-frame path: no object)."""
     rows = _pn_frame_rows(l, y_ref)
     ax, ay, az = a_n.tolist() if isinstance(a_n, np.ndarray) else a_n
     (_, yx, zx), (_, yy, zy), (lz, yz, zz) = rows
@@ -557,9 +605,11 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
     # demand_scale's first two tests (s = 0, then s = 1) written out: most frames the full demand is feasible and
     # the search below is not needed (its closure and memo cost ~5 % of a controller step). The same _best_tx
     # calls with the same arguments, so the same s and t_x.
-    if _best_tx(0.0 * a_y - g_y, 0.0 * a_z - g_z, u, p) is None:
+    best_tx = _best_tx_plain if abs(p.uptilt) <= _UPTILT_EPS else _best_tx  # the same t_x, the first cheaper
+    if best_tx(0.0 * a_y - g_y, 0.0 * a_z - g_z, u, p) is None:
         return _fallback(_rows_array(rows), u, p)
-    t_x = _best_tx(1.0 * a_y - g_y, 1.0 * a_z - g_z, u, p)
+    t_y, t_z = 1.0 * a_y - g_y, 1.0 * a_z - g_z  # s = 1
+    t_x = best_tx(t_y, t_z, u, p)
     if t_x is not None:
         s = 1.0
     else:
@@ -568,18 +618,20 @@ def solve(l: Vec3, a_n: Vec3, p: GuidanceParams, y_ref: np.ndarray | None = None
         if s is None:  # cannot happen: s = 0 was feasible above
             return _fallback(_rows_array(rows), u, p)
         t_x = memo[s] if s in memo else _best_tx(s * a_y - g_y, s * a_z - g_z, u, p)
-    t_y, t_z = s * a_y - g_y, s * a_z - g_z
+        t_y, t_z = s * a_y - g_y, s * a_z - g_z
     if t_x is None:  # cannot happen: demand_scale checked this very s
         return _fallback(_rows_array(rows), u, p)
     f, theta, phi = angles_of_thrust(t_x, t_y, t_z)
-    f = min(p.f_max, max(f, p.f_min))  # rounding only: (a) gives |t| >= t_z >= f_min
-    # R_W_PN.dot(_R_y_R_x(phi, theta)) with both factors in one array (one construction, not two, every frame):
-    # the same two contiguous 3x3 operands for BLAS, the same product (tests/test_speed_identity.py).
+    f = p.f_min if p.f_min > f else f  # min(f_max, max(f, f_min)): rounding only, (a) gives |t| >= t_z >= f_min
+    f = f if f < p.f_max else p.f_max
+    # R_W_PN.dot(_R_y_R_x(phi, theta)) with both factors in one array (one construction, not two, every frame),
+    # an immutable one on the packed floats (cheaper than np.array's parsing of a tuple): the same two contiguous
+    # 3x3 operands for BLAS, the same product (tests/test_speed_identity.py).
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
     cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
-    M = np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22,
-                  cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct)).reshape(2, 3, 3)
-    return ThrustAttitude(f, phi, theta, M[0].dot(M[1]), s, False)
+    M = np.ndarray((2, 3, 3), _F64, _PACK_2X3X3.pack(r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                                                      cp, sp * st, sp * ct, 0.0, ct, -st, -sp, cp * st, cp * ct))
+    return f, phi, theta, M[0].dot(M[1]), s, False
 
 
 def _rows_array(rows: list[list[float]]) -> np.ndarray:
@@ -588,7 +640,7 @@ def _rows_array(rows: list[list[float]]) -> np.ndarray:
     return np.array((r00, r01, r02, r10, r11, r12, r20, r21, r22)).reshape(3, 3)  # flat: cheaper than nested
 
 
-def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> ThrustAttitude:
+def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidanceParams) -> Solution:
     """No demand is feasible (LOS steeper than the FOV and tilt bounds together allow, or too steep for f_min).
 
     Wings level about the LOS (theta = 0) and the optical axis as close to the LOS as the tilt bound allows:
@@ -600,7 +652,7 @@ def _fallback(R_W_PN: np.ndarray, u: tuple[float, float, float], p: GuidancePara
     phi = max(alpha - p.max_tilt, min(alpha + p.max_tilt, p.uptilt))  # optical axis at phi - uptilt from the LOS
     up = u[0] * math.sin(phi) + u[2] * math.cos(phi)  # cos(tilt) > 0
     f = min(p.f_max, max(p.f_min, G / up if up > _EPS else p.f_min))
-    return ThrustAttitude(f, phi, 0.0, R_W_PN.dot(_R_y_R_x(phi, 0.0)), 0.0, True)
+    return f, phi, 0.0, R_W_PN.dot(_R_y_R_x(phi, 0.0)), 0.0, True
 
 
 @fast_init
@@ -624,7 +676,9 @@ def normalised_thrust(f_th: float, hover_thrust: float, thrust_min: float) -> fl
 
     Never 0: a quadrotor at zero thrust falls and cannot recover.
     """
-    return min(1.0, max(thrust_min, hover_thrust * f_th / G))
+    u = hover_thrust * f_th / G
+    u = u if u > thrust_min else thrust_min  # min(1.0, max(thrust_min, u))
+    return u if u < 1.0 else 1.0
 
 
 def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min: float) -> Setpoint:
@@ -632,9 +686,9 @@ def to_setpoint(R_W_B: np.ndarray, f_th: float, hover_thrust: float, thrust_min:
     # = P_NED_ENU @ R_W_B @ F_FRD_FLU = R_W_B[_ENU_TO_NED_ROWS] * _NED_FRD_SIGNS, without two matmuls; in floats
     # (x * 1.0 is x and x * -1.0 is -x, exactly as numpy's elementwise product, signed zeros included).
     (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = R_W_B.tolist()
-    rows = ((b0, -b1, -b2), (a0, -a1, -a2), (-c0, c1, c2))
-    roll, pitch, yaw = euler_ned_deg_from_rows(rows)
-    R = np.array((b0, -b1, -b2, a0, -a1, -a2, -c0, c1, c2)).reshape(3, 3)  # the rows, flat: cheaper than nested
+    a1, a2, b1, b2, c0 = -a1, -a2, -b1, -b2, -c0  # negated once: the rows are (b0, b1, b2), (a0, a1, a2), (c0, c1, c2)
+    roll, pitch, yaw = euler_ned_deg_of(b0, b1, a0, a1, c0, c1, c2)
+    R = np.array((b0, b1, b2, a0, a1, a2, c0, c1, c2)).reshape(3, 3)  # the rows, flat: cheaper than nested
     return Setpoint(roll, pitch, yaw, normalised_thrust(f_th, hover_thrust, thrust_min), R)
 
 

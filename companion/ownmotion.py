@@ -51,12 +51,12 @@ class OwnMotion:
             else:
                 eff = a0
         ax, ay, az = a.tolist() if isinstance(a, np.ndarray) else (float(a[0]), float(a[1]), float(a[2]))
-        self._hist.append((t, (ax, ay, az), eff))
-        self._t.append(t)
+        hist, times = self._hist, self._t
+        hist.append((t, (ax, ay, az), eff))
+        times.append(t)
         horizon = t - HISTORY_S
-        while len(self._hist) > 2 and self._hist[1][0] < horizon:
-            self._hist.pop(0)
-            self._t.pop(0)
+        while len(times) > 2 and times[1] < horizon:  # times[i] is hist[i][0]
+            del hist[0], times[0]
 
     def dv(self, t0: float, t1: float) -> np.ndarray:
         """The velocity the (modelled) acceleration added between t0 and t1, without drag."""
@@ -65,7 +65,7 @@ class OwnMotion:
         hist = self._hist
         for i, (ti, (ax, ay, az), (ex, ey, ez)) in enumerate(hist):
             tn = hist[i + 1][0] if i + 1 < len(hist) else t1
-            s0, s1 = max(t0, ti), min(t1, tn)
+            s0, s1 = (ti if ti > t0 else t0), (tn if tn < t1 else t1)  # max(t0, ti), min(t1, tn): see motion_xyz
             if s1 <= s0:
                 continue
             h = s1 - s0
@@ -91,13 +91,16 @@ class OwnMotion:
         k, tau = self.drag_rate, self.lag
         vx = vy = vz = px = py = pz = 0.0
         hist = self._hist
-        first = max(0, bisect.bisect_right(self._t, t0) - 1)  # the command in effect at t0
+        first = bisect.bisect_right(self._t, t0) - 1  # the command in effect at t0
+        first = first if first > 0 else 0
+        # max(t0, ti) and min(t1, tn) below as ``b if b > a else a``: the builtins' value (ties and NaN keep the
+        # first argument) without their cost (~0.1 us a call, every frame).
         for i in range(first, len(hist)):
             ti, ai, ei = hist[i]
             if ti >= t1:
                 break
             tn = hist[i + 1][0] if i + 1 < len(hist) else t1
-            s0, s1 = max(t0, ti), min(t1, tn)
+            s0, s1 = (ti if ti > t0 else t0), (tn if tn < t1 else t1)
             if s1 <= s0:
                 continue
             dt = s1 - s0

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 
 import numpy as np
 import pytest
 
 from companion import guidance
-from companion.frames import R_from_quat_wxyz, euler_ned_deg_from_R, euler_ned_deg_from_rows
+from companion.frames import R_from_quat_wxyz, R_from_quat_wxyz_shared, euler_ned_deg_from_R, euler_ned_deg_from_rows
 from perception.los import CameraModel, LosFilter
 
 RNG = np.random.default_rng(21)
@@ -87,6 +88,9 @@ def test_euler_rows_and_quat_cache() -> None:
         R2[0, 0] = 7.0
         assert R_from_quat_wxyz(q).tobytes() == R.tobytes()  # a caller's edit does not reach the cache
         assert R_from_quat_wxyz(list(q)).tobytes() == R.tobytes()
+        shared = R_from_quat_wxyz_shared(q)  # the controller's: the cached matrix itself, which nobody can change
+        assert shared.tobytes() == R.tobytes() and not shared.flags.writeable
+        assert R_from_quat_wxyz(q).flags.writeable
         # the old element-wise form
         w, x, y, z = (float(c) for c in q)
         s = 2.0 / (w * w + x * x + y * y + z * z)
@@ -214,6 +218,9 @@ def test_one_array_of_two_factors_gives_the_same_product() -> None:
         B[RNG.integers(3), RNG.integers(3)] = -0.0
         M = np.array((*A.ravel().tolist(), *B.ravel().tolist())).reshape(2, 3, 3)
         assert M[0].dot(M[1]).tobytes() == A.dot(B).tobytes()
+        # solve's own construction: an immutable array on the packed floats
+        P = np.ndarray((2, 3, 3), np.float64, struct.pack("18d", *A.ravel().tolist(), *B.ravel().tolist()))
+        assert P[0].dot(P[1]).tobytes() == A.dot(B).tobytes()
     gp = guidance.GuidanceParams(k_pn=3.0, v_rel_bar=15.0, gamma_bar=0.3, f_max=19.6, f_min=1.0)
     for _ in range(300):
         los = RNG.normal(size=3) * (1.0, 1.0, 0.3)
@@ -221,3 +228,26 @@ def test_one_array_of_two_factors_gives_the_same_product() -> None:
         sol = guidance.solve(los, RNG.normal(size=3) * 5.0, gp)
         R = guidance.pn_frame(los).dot(guidance._R_y_R_x(sol.phi, sol.theta))
         assert sol.R_W_B.tobytes() == R.tobytes()
+
+
+@pytest.mark.parametrize("fov", ["exact", "paper"])
+def test_best_tx_plain_is_the_envelope_path(fov: str) -> None:
+    """solve's _best_tx_plain (no uptilt: the one piece written out) gives _best_tx's t_x or None, bit for bit, over
+    feasible and infeasible thrusts, every tilt-cone case (H inside, the root, the maximiser, no t_x) included."""
+    hits = {"H": 0, "root": 0, "none": 0}
+    for _ in range(20000):
+        gp = guidance.GuidanceParams(k_pn=3.0, v_rel_bar=15.0, gamma_bar=float(RNG.uniform(0.05, 1.5)),
+                                     f_max=19.62, f_min=float(RNG.choice([1e-5, 1.962, 5.0])), fov=fov,
+                                     max_tilt=float(RNG.uniform(0.05, 1.5)))
+        u = RNG.normal(size=3)
+        u = tuple((u / np.linalg.norm(u)).tolist())
+        if RNG.random() < 0.05:
+            u = (float(RNG.choice([0.0, -0.0])), 0.0, 1.0)  # LOS level: the maximiser at 0
+        t_y, t_z = RNG.normal(0.0, 8.0), RNG.uniform(-2.0, 22.0)
+        if RNG.random() < 0.05:
+            t_y = float(RNG.choice([0.0, -0.0]))
+        new, old = guidance._best_tx_plain(t_y, t_z, u, gp), guidance._best_tx(t_y, t_z, u, gp)
+        assert (new is None and old is None) or np.float64(new).tobytes() == np.float64(old).tobytes()
+        e = guidance._envelope(t_y, t_z, u, gp)
+        hits["none" if old is None else "H" if e is not None and old == e[0][0][1] else "root"] += 1
+    assert min(hits.values()) > 100, hits
