@@ -276,14 +276,9 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
         if not pieces:
             return None
     else:
-        tg = math.tan(p.gamma_bar)
-        if p.fov == "exact":
-            w = t_z * tg
-        else:
-            w2 = t_z * t_z * tg * tg - t_y * t_y
-            if w2 < -1e-12 * (1.0 + K):
-                return None
-            w = math.sqrt(max(w2, 0.0))
+        w = _fov_width(t_y, t_z, K, p)
+        if w is None:
+            return None
         H = r if r < w else w  # min(w, r)
         pieces = [(-H, H)]
     u_x, u_y, u_z = u
@@ -292,6 +287,18 @@ def _envelope(t_y: float, t_z: float, u: tuple[float, float, float], p: Guidance
     # Maximiser of h: finite when the LOS direction lies outside the tilt cone, else at +-inf.
     xm = u_x * math.sqrt(K / s2) if s2 > 1e-15 else (math.copysign(math.inf, u_x) if u_x != 0.0 else 0.0)
     return pieces, xm, u_y * t_y + u_z * t_z, K, u_x, c
+
+
+def _fov_width(t_y: float, t_z: float, K: float, p: GuidanceParams) -> float | None:
+    """The largest ``|t_x|`` the FOV bound (c) allows without uptilt, or None when it allows none (``K`` =
+    ``t_y^2 + t_z^2``)."""
+    tg = math.tan(p.gamma_bar)
+    if p.fov == "exact":
+        return t_z * tg
+    w2 = t_z * t_z * tg * tg - t_y * t_y
+    if w2 < -1e-12 * (1.0 + K):
+        return None
+    return math.sqrt(0.0 if w2 < 0.0 else w2)  # max(w2, 0.0)
 
 
 def _uptilt_pieces(t_y: float, t_z: float, mu: float, gamma_bar: float) -> list[tuple[float, float]]:
@@ -437,14 +444,9 @@ def _best_tx_plain(t_y: float, t_z: float, u: tuple[float, float, float], p: Gui
     if r2 < -1e-12 * f_max * f_max:
         return None
     r = math.sqrt(0.0 if r2 < 0.0 else r2)
-    tg = math.tan(p.gamma_bar)  # (c)
-    if p.fov == "exact":
-        w = t_z * tg
-    else:
-        w2 = t_z * t_z * tg * tg - t_y * t_y
-        if w2 < -1e-12 * (1.0 + K):
-            return None
-        w = math.sqrt(0.0 if w2 < 0.0 else w2)
+    w = _fov_width(t_y, t_z, K, p)  # (c)
+    if w is None:
+        return None
     H = r if r < w else w  # min(w, r)
     u_x, u_y, u_z = u
     c = math.cos(p.max_tilt)
