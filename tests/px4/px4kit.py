@@ -93,6 +93,13 @@ class Px4Bench:
             return self._start()
         return self.px4
 
+    def retire(self) -> None:
+        """Stop this PX4 so that the next test gets a fresh one. After a test froze PX4 (SIGSTOP, then thawed) its
+        SIH sensors time out: CI 2026-12-08 saw the next test's take-off end in PX4's failsafe Land ("Magnetometer
+        sensor #0 failure: Timeout", "No valid data from barometer"), and the test after it stay on SIH's ground."""
+        if self.px4 is not None:
+            self.px4.stop()
+
     def close(self) -> None:
         if self.px4 is not None:
             self.px4.stop()
